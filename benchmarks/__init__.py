@@ -1,0 +1,1 @@
+"""meshbench glue: registries, data generation, the runner and the command-line interface."""

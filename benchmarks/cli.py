@@ -1,0 +1,41 @@
+"""The ``meshbench`` command. Each subcommand lives in ``benchmarks/commands/NAME.py`` and
+exposes ``register(subparsers)``; add a module name to ``COMMANDS`` to add a subcommand.
+Heavy imports (torch) happen inside the subcommand, so data commands work without them."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from benchmarks.registry import RegistryError
+
+COMMANDS = ["generate", "simulate", "export"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="meshbench", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in COMMANDS:
+        importlib.import_module(f"benchmarks.commands.{name}").register(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    from groundtruth.implicit import ConvergenceError
+    from groundtruth.store import StoreError
+
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, RegistryError, StoreError, ConvergenceError, FileNotFoundError) as e:
+        print(f"meshbench {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"meshbench {args.command}: interrupted; finished work is kept, run it again "
+              "to resume", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Subcommands of ``meshbench``; see ``benchmarks.cli.COMMANDS``."""
