@@ -9,6 +9,7 @@ has a stable hash of everything that determines its data. Cases are registered b
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -18,6 +19,8 @@ import numpy as np
 
 from groundtruth import implicit
 from groundtruth.implicit import NewtonSettings
+from groundtruth.mesh import PATTERNS, graded_rows, is_cell_diagonal, mesh_edges, strip_mesh
+from groundtruth.plate import clamp_mask, lumped_mass, plate_terms
 from groundtruth.rod import rod_terms
 from groundtruth.system import MechanicalSystem
 
@@ -277,3 +280,123 @@ class RodCase(CaseBase):
         R = self.node_radius()
         return (2.0 / 9.0) * (self.rho_metal - self.rho_fluid) * self.gravity \
             * np.sum(R**3) / (self.viscosity * np.sum(R))
+
+
+@dataclass(frozen=True)
+class PlateCase(CaseBase):
+    """A DEP cantilever plate falling under gravity (paper case study 2).
+
+    The plate lies flat in the x-y plane at t = 0, ``|y| <= width / 2``, gravity along -z.
+    Geometry of the mesh (``groundtruth.mesh``): ``n_clamp_rows`` rows at
+    ``x = -(n_clamp_rows - 1) dx0, ..., -dx0, 0`` are clamped (``node_type`` 1), and
+    ``n_length`` row intervals graded by ``grading`` cover the free length ``0 <= x <= length``;
+    ``dx0`` is the first free spacing. So the free (cantilever) length is exactly ``length``,
+    measured from the last clamped row at x = 0 to the tip; the clamp strip lies behind it.
+    ``n_width`` intervals across the width, nodes numbered across the width first.
+
+    Physics (``groundtruth.plate``): stretching k_s = (sqrt 3 / 2) Y h l0 per edge, hinge
+    bending with D = Y h^3 / 12 (EI = Y w h^3 / 12 for the strip), lumped mass rho A h / 3 per
+    triangle corner, gravity ``-m g z``, mass-proportional damping ``-c m v`` with
+    ``c = damping_rate`` (1/s). Units SI.
+    """
+
+    id: str = "plate_cantilever"
+    length: float = 1.0
+    width: float = 0.1
+    thickness: float = 1e-3
+    density: float = 1200.0
+    gravity: float = 9.81
+    damping_rate: float = 0.5
+    n_length: int = 28
+    n_width: int = 4
+    grading: float = 32.0
+    n_clamp_rows: int = 2
+    clamp_gap: float = 1e-3
+    pattern: str = "columns"
+    diagonal_stiffening: float = 100.0
+    t_end: float = 1.5
+    save_dt: float = 0.003
+    dt: float = 0.003
+    newton_rtol: float = 1e-4
+    youngs_train: tuple = (2.5e6, 7.5e6)
+    youngs_test: tuple = (2.5e6, 7.5e6)
+    n_train: int = 30
+    n_test: int = 6
+    seed_train: int = 30_000
+    seed_test: int = 6_000
+
+    kind = "plate"
+
+    def __post_init__(self):
+        _check_positive(self, "length", "width", "thickness", "density", "gravity", "grading",
+                        "clamp_gap", "diagonal_stiffening")
+        if self.pattern not in PATTERNS:
+            raise ValueError(f"PlateCase.pattern must be one of {PATTERNS}, got {self.pattern!r}")
+        v = self.damping_rate
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise ValueError(f"PlateCase.damping_rate must be a finite number >= 0 (1/s), got {v!r}")
+        for name, low in (("n_length", 1), ("n_width", 1), ("n_clamp_rows", 2)):
+            n = getattr(self, name)
+            if isinstance(n, bool) or not isinstance(n, int) or n < low:
+                why = " (the hinge model has no rotational dofs: the clamp must hold the slope)" \
+                    if name == "n_clamp_rows" else ""
+                raise ValueError(f"PlateCase.{name} must be an int >= {low}{why}, got {n!r}")
+        x1 = graded_rows(self.length, self.n_length, self.grading)[1]
+        if self.clamp_gap >= 2 * x1:
+            raise ValueError(f"PlateCase.clamp_gap ({self.clamp_gap!r} m) must be smaller than twice "
+                             f"the first free row spacing ({x1:.4g} m): the last clamped row sits "
+                             "at x = clamp_gap / 2")
+        object.__setattr__(self, "youngs_train", tuple(float(x) for x in self.youngs_train))
+        object.__setattr__(self, "youngs_test", tuple(float(x) for x in self.youngs_test))
+        self._check_common()
+
+    # --- geometry --------------------------------------------------------------------------
+    def x_rows(self) -> np.ndarray:
+        """Row positions ``(n_clamp_rows + n_length,)``, m: clamped rows at
+        ``x = clamp_gap (1/2 - k)``, k = n_clamp_rows - 1 ... 0, then the graded free rows."""
+        free = graded_rows(self.length, self.n_length, self.grading)[1:]
+        clamp = self.clamp_gap * (0.5 - np.arange(self.n_clamp_rows - 1, -1, -1))
+        return np.concatenate([clamp, free])
+
+    @functools.cached_property
+    def _mesh(self):
+        nodes, tri = strip_mesh(self.x_rows(), self.width, self.n_width, self.pattern)
+        fixed = clamp_mask(nodes, 0.5 * self.clamp_gap, min_rows=2)
+        return nodes, tri, mesh_edges(tri), fixed
+
+    def rest_positions(self) -> np.ndarray:
+        return self._mesh[0].copy()
+
+    def mesh(self):
+        """``edges (E, 2)``, ``cells (M, 3)`` (counter-clockwise from +z), ``node_type (N,)``."""
+        nodes, tri, edges, fixed = self._mesh
+        return edges.copy(), tri.copy(), fixed.astype(np.int64)
+
+    def initial_state(self):
+        x = self.rest_positions()
+        return x, np.zeros_like(x)
+
+    def bending_rigidity(self, youngs: float) -> float:
+        """EI = Y w h^3 / 12 of the strip, N m^2."""
+        return check_youngs(youngs) * self.width * self.thickness**3 / 12.0
+
+    @property
+    def line_load(self) -> float:
+        """Weight per unit length q = rho g h w, N/m."""
+        return self.density * self.gravity * self.thickness * self.width
+
+    # --- physics ---------------------------------------------------------------------------
+    def _hinge_factor(self, hinges: np.ndarray) -> np.ndarray:
+        return np.where(is_cell_diagonal(hinges, self.n_width), self.diagonal_stiffening, 1.0)
+
+    def system(self, youngs: float) -> MechanicalSystem:
+        """The DEP system for modulus ``youngs`` (Pa)."""
+        Y = check_youngs(youngs)
+        nodes, tri, _, fixed = self._mesh
+        mass = lumped_mass(nodes, tri, self.density, self.thickness)
+        force = np.zeros((len(nodes), 3))
+        force[:, 2] = -mass * self.gravity
+        scale = self.density * self.thickness * self.width * self.length * self.gravity / len(nodes)
+        terms = plate_terms(nodes, tri, Y, self.thickness, hinge_factor=self._hinge_factor)
+        return MechanicalSystem(terms, mass,
+                                self.damping_rate * mass, force, fixed, force_scale=scale)

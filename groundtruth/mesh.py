@@ -1,0 +1,148 @@
+"""Structured triangulations of a strip, and the edges and hinges of a triangle mesh.
+
+The strip mesh is made of rows: row ``i`` is the line ``x = x_i`` carrying ``n_width + 1``
+nodes at ``y_j = -w/2 + j w / n_width``; node ``(i, j)`` has index ``i (n_width + 1) + j``, so
+nodes are numbered across the width first and every element couples nodes at most two rows
+apart (a narrow band, see ``groundtruth.assembly.Assembler.banded``). Each cell between two rows
+is cut by one diagonal, alternating in a checkerboard, so the mesh is mirror symmetric about the
+centre line ``y = 0`` when ``n_width`` is even and has no preferred diagonal direction.
+
+Rows may be graded toward ``x = 0`` (``graded_rows``):
+
+    x(xi) = L (exp(kappa xi) - 1) / (exp(kappa) - 1),   kappa = ln(grading),   xi = i / n,
+
+a smooth map, so refining ``n`` at a fixed ``grading`` is a uniform refinement in ``xi``; the
+spacing grows from about ``L kappa / (n (e^kappa - 1))`` at ``x = 0`` to ``grading`` times that
+at ``x = L``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+PATTERNS = ("columns", "checker", "mirror", "uniform")
+
+
+def graded_rows(length: float, n: int, grading: float = 1.0) -> np.ndarray:
+    """``n + 1`` increasing row positions from 0 to ``length`` (m), ``grading`` = ratio of the
+    continuum spacing at ``length`` to that at 0 (1 = uniform)."""
+    if not (isinstance(n, (int, np.integer)) and n >= 1):
+        raise ValueError(f"graded_rows: n must be an int >= 1, got {n!r}")
+    if not (np.isfinite(grading) and grading > 0):
+        raise ValueError(f"graded_rows: grading must be a positive number, got {grading!r}")
+    xi = np.arange(n + 1) / n
+    kappa = np.log(grading)
+    if abs(kappa) < 1e-12:
+        return length * xi
+    return length * np.expm1(kappa * xi) / np.expm1(kappa)
+
+
+def strip_mesh(x_rows: np.ndarray, width: float, n_width: int, pattern: str = "checker"):
+    """Triangulate the rows ``x_rows (R,)`` of a strip ``|y| <= width / 2`` lying in z = 0.
+
+    Returns ``nodes (R (n_width + 1), 3)`` and counter-clockwise ``triangles (2 (R-1) n_width, 3)``.
+    """
+    if pattern not in PATTERNS:
+        raise ValueError(f"strip_mesh: pattern must be one of {PATTERNS}, got {pattern!r}")
+    x = np.asarray(x_rows, float)
+    if x.ndim != 1 or x.size < 2 or np.any(np.diff(x) <= 0):
+        raise ValueError(f"strip_mesh: x_rows must be >= 2 strictly increasing positions, got {x!r}")
+    if not (isinstance(n_width, (int, np.integer)) and n_width >= 1):
+        raise ValueError(f"strip_mesh: n_width must be an int >= 1, got {n_width!r}")
+    nj = n_width + 1
+    y = np.linspace(-width / 2, width / 2, nj)
+    X, Y = np.meshgrid(x, y, indexing="ij")
+    nodes = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], axis=1)
+    i, j = np.meshgrid(np.arange(x.size - 1), np.arange(n_width), indexing="ij")
+    i, j = i.ravel(), j.ravel()
+    n00, n01 = i * nj + j, i * nj + j + 1
+    n10, n11 = n00 + nj, n01 + nj
+    up = {"columns": j % 2 == 0, "checker": (i + j) % 2 == 0, "mirror": 2 * j + 1 < n_width,
+          "uniform": np.ones(i.size, bool)}[pattern]                      # diagonal n00-n11
+    tri = np.empty((2 * i.size, 3), np.int64)
+    tri[0::2] = np.where(up[:, None], np.stack([n00, n10, n11], 1), np.stack([n00, n10, n01], 1))
+    tri[1::2] = np.where(up[:, None], np.stack([n00, n11, n01], 1), np.stack([n10, n11, n01], 1))
+    return nodes, tri
+
+
+def is_cell_diagonal(edges: np.ndarray, n_width: int) -> np.ndarray:
+    """Boolean ``(E,)``: which edges ``(E, >=2)`` of a ``strip_mesh`` join nodes of different rows
+    and different columns (the diagonals that cut each rectangular cell in two)."""
+    e = np.asarray(edges, np.int64)
+    r0, c0 = np.divmod(e[:, 0], n_width + 1)
+    r1, c1 = np.divmod(e[:, 1], n_width + 1)
+    return (r0 != r1) & (c0 != c1)
+
+
+def triangle_areas(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Areas ``(M,)`` of the triangles (m^2), from the 3-D node positions."""
+    x = np.asarray(nodes, float)[np.asarray(triangles)]
+    return 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1)
+
+
+def check_mesh(nodes: np.ndarray, triangles: np.ndarray, rel_area_tol: float = 1e-10) -> None:
+    """Raise ``ValueError`` for a triangle mesh that DEP cannot use: bad shapes or indices,
+    a degenerate triangle (area <= ``rel_area_tol`` x longest edge^2), an edge shared by more
+    than two triangles, or two neighbours that traverse their shared edge the same way
+    (inconsistent orientation)."""
+    x = np.asarray(nodes)
+    t = np.asarray(triangles)
+    if x.ndim != 2 or x.shape[1] != 3 or not np.all(np.isfinite(x)):
+        raise ValueError(f"mesh nodes must be a finite (N, 3) array, got shape {x.shape}")
+    if t.ndim != 2 or t.shape[1] != 3 or t.shape[0] == 0:
+        raise ValueError(f"mesh triangles must be a non-empty (M, 3) int array, got shape {t.shape}")
+    if t.min() < 0 or t.max() >= x.shape[0]:
+        raise ValueError(f"mesh triangles refer to nodes outside [0, {x.shape[0]})")
+    area = triangle_areas(x, t)
+    edge2 = np.max(np.sum((x[t] - x[np.roll(t, 1, axis=1)]) ** 2, axis=2), axis=1)
+    bad = np.flatnonzero(area <= rel_area_tol * edge2)
+    if bad.size:
+        k = bad[0]
+        raise ValueError(f"degenerate triangle {k} (nodes {t[k].tolist()}, area {area[k]:.3g} m^2)"
+                         f" and {bad.size - 1} more: every triangle needs a positive area; "
+                         "remove or re-mesh it")
+    half = _half_edges(t)
+    key = np.sort(half, axis=1)
+    _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    if count.max() > 2:
+        e = key[np.flatnonzero(count[inv.ravel()] > 2)[0]]
+        raise ValueError(f"non-manifold mesh: edge {e.tolist()} is shared by more than two triangles")
+    _, c2 = np.unique(half, axis=0, return_counts=True)
+    if c2.max() > 1:
+        raise ValueError("inconsistently oriented mesh: two triangles traverse a shared edge in "
+                         "the same direction; orient all triangles counter-clockwise")
+
+
+def _half_edges(triangles: np.ndarray) -> np.ndarray:
+    """``(3M, 2)`` directed edges ``(t0, t1), (t1, t2), (t2, t0)`` of every triangle, in order."""
+    t = np.asarray(triangles, np.int64)
+    return np.stack([t, np.roll(t, -1, axis=1)], axis=2).reshape(-1, 2)
+
+
+def mesh_edges(triangles: np.ndarray) -> np.ndarray:
+    """Unique undirected edges ``(E, 2)``, ``edges[:, 0] < edges[:, 1]``, sorted."""
+    return np.unique(np.sort(_half_edges(triangles), axis=1), axis=0)
+
+
+def mesh_hinges(triangles: np.ndarray):
+    """Hinges of the interior edges: ``hinges (H, 4)`` as ``(x0, x1, x2, x3)`` (edge x0 -> x1
+    traversed by triangle A = (x0, x1, x2), x1 -> x0 by triangle B = (x1, x0, x3)) and the two
+    triangle indices ``(H, 2)`` (A, B). Assumes a consistently oriented manifold mesh."""
+    t = np.asarray(triangles, np.int64)
+    half = _half_edges(t)
+    opposite = np.roll(t, 1, axis=1).ravel()        # vertex opposite each half-edge
+    tri_of = np.repeat(np.arange(t.shape[0]), 3)
+    n = int(t.max()) + 1
+    key_fwd = half[:, 0] * n + half[:, 1]
+    key_rev = half[:, 1] * n + half[:, 0]
+    order = np.argsort(key_fwd)
+    pos = np.searchsorted(key_fwd[order], key_rev)
+    pos = np.minimum(pos, half.shape[0] - 1)
+    twin = order[pos]
+    has_twin = key_fwd[twin] == key_rev
+    a = np.flatnonzero(has_twin & (half[:, 0] < half[:, 1]))
+    b = twin[a]
+    hinges = np.stack([half[a, 0], half[a, 1], opposite[a], opposite[b]], axis=1)
+    srt = np.lexsort((hinges[:, 1], hinges[:, 0]))
+    return hinges[srt], np.stack([tri_of[a], tri_of[b]], axis=1)[srt]

@@ -1,0 +1,82 @@
+"""Discrete Elastic Plates (DEP): a triangle mesh with stretching springs and bending hinges.
+
+For a plate of Young's modulus Y (Pa), thickness h (m) and density rho (kg/m^3) meshed by
+counter-clockwise triangles:
+
+- stretching: every edge is a spring (``groundtruth.stretch``),
+  E_s = 1/2 k_s l0 (|e|/l0 - 1)^2,  k_s = (sqrt 3 / 2) Y h l0;
+- bending: every interior edge is a hinge (``groundtruth.hinge``),
+  E_b = 1/2 k_b (theta - theta_bar)^2,  k_b = D |e|^2 / (A_A + A_B),  D = Y h^3 / 12,
+  which is the DEP constant (2 / sqrt 3) Y h^3 / 12 on equilateral triangles (see
+  ``hinge_stiffness`` for the calibration on other triangles);
+- lumped mass: each triangle's rho A h split 1/3 to each of its nodes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from groundtruth.hinge import HingeTerm, hinge_stiffness
+from groundtruth.mesh import check_mesh, mesh_edges, mesh_hinges, triangle_areas
+from groundtruth.stretch import StretchTerm
+
+
+def _check_positive(name: str, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a positive number, got {value!r}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    return v
+
+
+def plate_terms(nodes: np.ndarray, triangles: np.ndarray, youngs: float, thickness: float,
+                hinge_factor=None) -> list:
+    """``[StretchTerm, HingeTerm]`` of a DEP plate whose rest shape is ``nodes (N, 3)`` (m).
+
+    ``hinge_factor``, if given, maps the hinges ``(H, 4)`` to factors ``(H,)`` that multiply
+    their stiffness (``PlateCase`` stiffens the cell diagonals of its strip mesh with it).
+
+    Raises ``ValueError`` for a non-positive modulus or thickness or an unusable mesh
+    (``groundtruth.mesh.check_mesh``).
+    """
+    Y = _check_positive("youngs", youngs)
+    h = _check_positive("thickness", thickness)
+    check_mesh(nodes, triangles)
+    x = np.asarray(nodes, float)
+    edges = mesh_edges(triangles)
+    l0 = np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1)
+    stretch = StretchTerm(edges, l0, np.sqrt(3.0) / 2.0 * Y * h * l0)
+    hinges, tris = mesh_hinges(triangles)
+    area = triangle_areas(x, triangles)
+    le = np.linalg.norm(x[hinges[:, 1]] - x[hinges[:, 0]], axis=1)
+    k_b = hinge_stiffness(Y, h, le, area[tris].sum(axis=1))
+    if hinge_factor is not None:
+        k_b = k_b * np.asarray(hinge_factor(hinges), float)
+    return [stretch, HingeTerm.from_rest(hinges, x, k_b)]
+
+
+def lumped_mass(nodes: np.ndarray, triangles: np.ndarray, density: float, thickness: float):
+    """Node masses ``(N,)`` (kg): each triangle's ``rho A h`` split 1/3 to each of its nodes."""
+    rho = _check_positive("density", density)
+    h = _check_positive("thickness", thickness)
+    t = np.asarray(triangles, np.int64)
+    m_tri = rho * h * triangle_areas(nodes, t) / 3.0
+    return np.bincount(t.ravel(), weights=np.repeat(m_tri, 3), minlength=len(nodes))
+
+
+def clamp_mask(nodes: np.ndarray, x_clamp: float, min_rows: int = 2, tol: float = 1e-12):
+    """Boolean ``(N,)``: the nodes with ``x <= x_clamp`` (m). The hinge model has no rotational
+    dofs, so a clamp must hold at least ``min_rows`` distinct rows ``x = const``; otherwise a
+    ``ValueError`` says what the clamp caught."""
+    x = np.asarray(nodes, float)[:, 0]
+    fixed = x <= x_clamp + tol * max(1.0, np.ptp(x))
+    if not fixed.any():
+        raise ValueError(f"the clamp x <= {x_clamp!r} m fixes no node (mesh x from {x.min():.4g} "
+                         f"to {x.max():.4g} m); move the clamp or add clamp rows")
+    rows = np.unique(np.round(x[fixed], 12)).size
+    if rows < min_rows:
+        raise ValueError(f"the clamp x <= {x_clamp!r} m fixes {rows} row(s) of nodes; a hinge plate "
+                         f"needs at least {min_rows} clamped rows to hold the slope")
+    return fixed
