@@ -69,7 +69,9 @@ def newton_step(system: MechanicalSystem, q_n: np.ndarray, v_n: np.ndarray, dt: 
     q = q_n + dt * v_n * free
     res = np.inf
     for _ in range(max_iter):
-        g, K = system.gradient_hessian(q, diag)
+        # the tangent is assembled only when another update is needed (the converged
+        # iterate needs just the gradient); the iterates are those of plain Newton
+        g = system.gradient(q)
         f = m * ((q - q_n) / dt - v_n) / dt + g + c * (q - q_n) / dt - f_ext
         f[~free] = 0.0
         res = float(np.max(np.abs(f)))
@@ -79,7 +81,7 @@ def newton_step(system: MechanicalSystem, q_n: np.ndarray, v_n: np.ndarray, dt: 
             return None, None, res
         if res < tol:
             return q, (q - q_n) / dt, res
-        q = q - K.solve(f)
+        q = q - system.gradient_hessian(q, diag)[1].solve(f)
     g = system.gradient(q)
     f = (m * ((q - q_n) / dt - v_n) / dt + g + c * (q - q_n) / dt - f_ext)[free]
     res = float(np.max(np.abs(f)))
@@ -134,34 +136,52 @@ def simulate(system: MechanicalSystem, q0: np.ndarray, v0: np.ndarray, t_save: n
 
 
 def solve_static(system: MechanicalSystem, q0: np.ndarray, settings: NewtonSettings,
-                 n_load_steps: int = 10, max_cuts: int = 12) -> np.ndarray:
+                 n_load_steps: int = 10, max_cuts: int = 12,
+                 first_load: float | None = None) -> np.ndarray:
     """Static equilibrium ``grad E(q) = F`` by Newton with load stepping.
 
-    The load factor rises from 0 to 1 in ``n_load_steps`` increments; an increment whose
-    Newton fails is halved (at most ``max_cuts`` times in a row). Needs clamped dofs that
-    remove every rigid motion, otherwise the tangent is singular.
+    By default the load factor rises from 0 to 1 in ``n_load_steps`` equal increments. With
+    ``first_load`` in (0, 1] it starts at ``first_load`` and rises geometrically (equal steps
+    of log load, ``n_load_steps`` of them), and the Newton tolerance is taken relative to the
+    applied load (``tol * load factor``), which suits very flexible structures whose
+    deflection saturates (a soft cantilever hangs down long before the full load). An
+    increment whose Newton fails is halved (in load or log load; at most ``max_cuts`` times
+    in a row); a successful one lets the next grow by 1.5. Needs clamped dofs that remove
+    every rigid motion, otherwise the tangent is singular.
     """
     if not system.fixed_nodes.any():
         raise ValueError("solve_static: the system has no clamped node, so static equilibrium "
                          "is undefined (rigid motion); use a case with a clamp")
+    geometric = first_load is not None
+    if geometric and not (np.isfinite(first_load) and 0 < first_load <= 1):
+        raise ValueError(f"solve_static: first_load must be in (0, 1], got {first_load!r}")
     tol = settings.rtol * system.force_scale
     free = ~system.fixed_dofs
     q = np.array(q0, float)
-    lam, dlam, cuts = 0.0, 1.0 / n_load_steps, 0
+    lam, cuts = 0.0, 0
+    step = -np.log(first_load) / n_load_steps if geometric else 1.0 / n_load_steps
     zero = np.zeros(q.size)
     while lam < 1.0 - 1e-12:
-        target = min(1.0, lam + dlam)
-        q_try, res = _static_newton(system, q, target, tol, settings.max_iter, free, zero)
+        if geometric:
+            target = first_load if lam == 0.0 else min(1.0, lam * np.exp(step))
+        else:
+            target = min(1.0, lam + step)
+        tol_k = tol * target if geometric else tol
+        q_try, res = _static_newton(system, q, target, tol_k, settings.max_iter, free, zero)
         if q_try is None:
             cuts += 1
             if cuts > max_cuts:
                 raise ConvergenceError(
                     f"static Newton failed at load factor {target:.4g}: residual {res:.3e} N "
-                    f"> tolerance {tol:.3e} N after {max_cuts} load-step cuts")
-            dlam /= 2
+                    f"> tolerance {tol_k:.3e} N after {max_cuts} load-step cuts")
+            if geometric and lam == 0.0:
+                first_load /= 2
+            else:
+                step /= 2
             continue
         q, lam, cuts = q_try, target, 0
-        dlam = min(dlam * 1.5, 1.0 - lam) if lam < 1 else dlam
+        if lam < 1:
+            step = min(step * 1.5, -np.log(lam) if geometric else 1.0 - lam)
     return q
 
 

@@ -125,6 +125,15 @@ def mesh_edges(triangles: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(_half_edges(triangles), axis=1), axis=0)
 
 
+def edge_area_sums(triangles: np.ndarray, areas: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """For each edge of ``edges`` (as from ``mesh_edges``), the summed area of the one or two
+    triangles that contain it, ``(E,)``."""
+    half = np.sort(_half_edges(triangles), axis=1)
+    n = int(max(half.max(), np.max(edges))) + 1
+    pos = np.searchsorted(edges[:, 0] * n + edges[:, 1], half[:, 0] * n + half[:, 1])
+    return np.bincount(pos, weights=np.repeat(areas, 3), minlength=len(edges))
+
+
 def mesh_hinges(triangles: np.ndarray):
     """Hinges of the interior edges: ``hinges (H, 4)`` as ``(x0, x1, x2, x3)`` (edge x0 -> x1
     traversed by triangle A = (x0, x1, x2), x1 -> x0 by triangle B = (x1, x0, x3)) and the two

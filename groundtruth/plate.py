@@ -4,7 +4,9 @@ For a plate of Young's modulus Y (Pa), thickness h (m) and density rho (kg/m^3) 
 counter-clockwise triangles:
 
 - stretching: every edge is a spring (``groundtruth.stretch``),
-  E_s = 1/2 k_s l0 (|e|/l0 - 1)^2,  k_s = (sqrt 3 / 2) Y h l0;
+  E_s = 1/2 k_s l0 (|e|/l0 - 1)^2,  k_s = Y h (A_A + A_B) / l0,
+  which is the DEP constant (sqrt 3 / 2) Y h l0 on equilateral triangles (see
+  ``spring_stiffness`` for why it is weighted by the areas of the edge's triangles);
 - bending: every interior edge is a hinge (``groundtruth.hinge``),
   E_b = 1/2 k_b (theta - theta_bar)^2,  k_b = D |e|^2 / (A_A + A_B),  D = Y h^3 / 12,
   which is the DEP constant (2 / sqrt 3) Y h^3 / 12 on equilateral triangles (see
@@ -17,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from groundtruth.hinge import HingeTerm, hinge_stiffness
-from groundtruth.mesh import check_mesh, mesh_edges, mesh_hinges, triangle_areas
+from groundtruth.mesh import check_mesh, edge_area_sums, mesh_edges, mesh_hinges, triangle_areas
 from groundtruth.stretch import StretchTerm
 
 
@@ -31,9 +33,34 @@ def _check_positive(name: str, value) -> float:
     return v
 
 
+def spring_stiffness(youngs: float, thickness: float, rest_length: np.ndarray,
+                     area_sum: np.ndarray | None = None) -> np.ndarray:
+    """Edge spring stiffness ``k_s (E,)`` (N) for E_s = 1/2 k_s l0 (|e|/l0 - 1)^2.
+
+    Without ``area_sum`` it is the Discrete Elastic Plates value k_s = (sqrt 3 / 2) Y h l0.
+    With the summed rest area of the triangles that share each edge (one triangle on the
+    boundary) it is k_s = Y h (A_A + A_B) / l0, i.e. the DEP value times the calibration factor
+    psi = (2 / sqrt 3)(A_A + A_B) / l0^2, which is 1 on interior edges of equilateral triangles.
+    On a row mesh (``groundtruth.mesh.strip_mesh``) every triangle has exactly one edge along x,
+    so the edges along x of a strip carry exactly its tensile stiffness Y h w whatever the row
+    spacing dx; the uniform value gives (n_width + 1)(sqrt 3 / 2) Y h dx instead, which vanishes
+    as the rows are refined (about 1/16 of Y h w at the clamp of the default plate mesh).
+    """
+    Y = _check_positive("youngs", youngs)
+    h = _check_positive("thickness", thickness)
+    l0 = np.asarray(rest_length, float)
+    k_dep = np.sqrt(3.0) / 2.0 * Y * h * l0
+    if area_sum is None:
+        return k_dep
+    return np.maximum(k_dep, Y * h * np.asarray(area_sum, float) / l0)
+
+
 def plate_terms(nodes: np.ndarray, triangles: np.ndarray, youngs: float, thickness: float,
-                hinge_factor=None) -> list:
+                hinge_factor=None, spring_weights: str = "area") -> list:
     """``[StretchTerm, HingeTerm]`` of a DEP plate whose rest shape is ``nodes (N, 3)`` (m).
+
+    ``spring_weights`` is ``"area"`` (calibrated, the default) or ``"uniform"`` (the DEP
+    constant), see ``spring_stiffness``.
 
     ``hinge_factor``, if given, maps the hinges ``(H, 4)`` to factors ``(H,)`` that multiply
     their stiffness (``PlateCase`` stiffens the cell diagonals of its strip mesh with it).
@@ -47,9 +74,12 @@ def plate_terms(nodes: np.ndarray, triangles: np.ndarray, youngs: float, thickne
     x = np.asarray(nodes, float)
     edges = mesh_edges(triangles)
     l0 = np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1)
-    stretch = StretchTerm(edges, l0, np.sqrt(3.0) / 2.0 * Y * h * l0)
-    hinges, tris = mesh_hinges(triangles)
     area = triangle_areas(x, triangles)
+    if spring_weights not in ("area", "uniform"):
+        raise ValueError(f"spring_weights must be 'area' or 'uniform', got {spring_weights!r}")
+    area_sum = edge_area_sums(triangles, area, edges) if spring_weights == "area" else None
+    stretch = StretchTerm(edges, l0, spring_stiffness(Y, h, l0, area_sum))
+    hinges, tris = mesh_hinges(triangles)
     le = np.linalg.norm(x[hinges[:, 1]] - x[hinges[:, 0]], axis=1)
     k_b = hinge_stiffness(Y, h, le, area[tris].sum(axis=1))
     if hinge_factor is not None:
