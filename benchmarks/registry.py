@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from groundtruth.cases import RodCase
+from groundtruth.cases import PlateCase, RodCase
 
 CASES: dict = {
     "rod_falling": RodCase(),
+    "plate_cantilever": PlateCase(),
 }
 
 

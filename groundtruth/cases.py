@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from groundtruth import implicit
-from groundtruth.implicit import NewtonSettings
+from groundtruth.implicit import PREDICTORS, NewtonSettings
 from groundtruth.mesh import PATTERNS, graded_rows, is_cell_diagonal, mesh_edges, strip_mesh
-from groundtruth.plate import clamp_mask, lumped_mass, plate_terms
+from groundtruth.plate import clamp_mask, drop_clamped, lumped_mass, plate_terms
 from groundtruth.rod import rod_terms
 from groundtruth.system import MechanicalSystem
 
@@ -340,8 +340,9 @@ class PlateCase(CaseBase):
     spring_weights: str = "area"
     t_end: float = 1.5
     save_dt: float = 0.003
-    dt: float = 0.001
+    dt: float = 0.0005
     newton_rtol: float = 1e-4
+    newton_predictor: str = "acceleration"
     youngs_train: tuple = (2.5e6, 7.5e6)
     youngs_test: tuple = (2.5e6, 7.5e6)
     n_train: int = 30
@@ -356,6 +357,9 @@ class PlateCase(CaseBase):
                         "clamp_gap", "diagonal_stiffening")
         if self.pattern not in PATTERNS:
             raise ValueError(f"PlateCase.pattern must be one of {PATTERNS}, got {self.pattern!r}")
+        if self.newton_predictor not in PREDICTORS:
+            raise ValueError(f"PlateCase.newton_predictor must be one of {PREDICTORS}, "
+                             f"got {self.newton_predictor!r}")
         if self.spring_weights not in ("area", "uniform"):
             raise ValueError(f"PlateCase.spring_weights must be 'area' or 'uniform', "
                              f"got {self.spring_weights!r}")
@@ -412,6 +416,10 @@ class PlateCase(CaseBase):
         """Weight per unit length q = rho g h w, N/m."""
         return self.density * self.gravity * self.thickness * self.width
 
+    @property
+    def solver_settings(self) -> NewtonSettings:
+        return NewtonSettings(dt=self.dt, rtol=self.newton_rtol, predictor=self.newton_predictor)
+
     def load_parameter(self, youngs: float) -> float:
         """alpha = q L^3 / EI of the free length (the elastica's uniform-load parameter)."""
         return self.line_load * self.length**3 / self.bending_rigidity(youngs)
@@ -441,5 +449,6 @@ class PlateCase(CaseBase):
         scale = self.density * self.thickness * self.width * self.length * self.gravity / len(nodes)
         terms = plate_terms(nodes, tri, Y, self.thickness, hinge_factor=self._hinge_factor,
                             spring_weights=self.spring_weights)
+        terms = drop_clamped(terms, fixed)
         return MechanicalSystem(terms, mass,
                                 self.damping_rate * mass, force, fixed, force_scale=scale)

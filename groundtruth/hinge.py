@@ -6,40 +6,42 @@ shared edge runs from ``x0`` to ``x1``, ``x2`` is the opposite vertex of triangl
 counter-clockwise, so ``A`` traverses the edge as ``x0 -> x1`` and ``B`` as ``x1 -> x0``. With
 
     e = x1 - x0,  p = x2 - x0,  m = x3 - x0,
-    a = e x p  (normal of A, |a| = 2 area A),   b = m x e  (normal of B),   u = e / |e|,
+    a = e x p  (normal of A, |a| = 2 area A),   b = m x e  (normal of B),
 
-the signed dihedral angle is
+the signed dihedral angle between the normals, about the edge, is
 
-    theta = atan2(s, c),   s = (a x b) . u,   c = a . b,
+    theta = atan2((a x b) . e/|e|, a . b) = atan2(s, c),
+    s = -|e| V,  V = e . (p x m)  (since a x b = -e V),
+    c = (e . m)(e . p) - |e|^2 (p . m)  (Binet-Cauchy),
 
-zero for a flat hinge, positive when the hinge folds so that ``x2`` and ``x3`` lie below the
-plane through the edge along the normals (a "mountain" fold as seen from the +normal side).
-The bending energy of one hinge is
+zero for a flat hinge and positive when the hinge folds "mountain" seen from the side the
+normals point to (``x2`` or ``x3`` moves to the -normal side). Classic check (Bridson et al.):
+d theta / d x2 = -|e| a / |a|^2 and d theta / d x3 = -|e| b / |b|^2. The energy of a hinge is
 
     E_b = 1/2 k_b (theta - theta_bar)^2,
 
-with the rest angle ``theta_bar`` taken from the rest mesh. The reference stiffness of
-Discrete Elastic Plates is k_b = (2 / sqrt 3) Y h^3 / 12, which makes an equilateral mesh
-bend with D = Y h^3 / 12; ``hinge_stiffness`` generalises it to other triangles (see there).
+with the rest angle ``theta_bar`` from the rest mesh. The reference stiffness of Discrete
+Elastic Plates is k_b = (2 / sqrt 3) Y h^3 / 12, which makes an equilateral mesh bend with
+D = Y h^3 / 12; ``hinge_stiffness`` generalises it to other triangles (see there).
 
-Derivatives (the Tamstorf & Grinspun 2013 quantities, organised as a chain rule so that each
-factor can be checked on its own). With ``z = (a, b, u)`` and ``y = (e, p, m) = B q``:
+Derivatives (the quantities of Tamstorf & Grinspun 2013, here as a chain rule through the
+two polynomials s and c so that every factor is elementary). On ``y = (e, p, m)``:
 
-    d theta / dz = (c ds/dz - s dc/dz) / (c^2 + s^2),
-        dc/dz = (b, a, 0),   ds/dz = (b x u, u x a, a x b);
-    d2 theta / dz2 = f_cc dc dc^T + f_ss ds ds^T + f_cs (dc ds^T + ds dc^T)
-                     + f_c d2c + f_s d2s,
-        f_c = -s/r^2, f_s = c/r^2, f_cc = -f_ss = 2cs/r^4, f_cs = (s^2 - c^2)/r^4, r^2 = c^2+s^2,
-        d2c: identity blocks (a, b) and (b, a);  d2s_{a_i b_j} = eps_ijk u_k,
-        d2s_{a_i u_k} = eps_ijk b_j,  d2s_{b_j u_k} = eps_ijk a_i;
-    dz/dy:  da = e x dp - p x de,  db = m x de - e x dm,  du = (I - u u^T) de / |e|;
-    second derivatives of z contracted with lambda = d theta/dz:
-        (e, p) block  eps_ijk lambda_a,k  (a_k = eps_kij e_i p_j),
-        (m, e) block  eps_ijk lambda_b,k  (b_k = eps_kij m_i e_j),
-        (e, e) block  -(u lambda_u^T + lambda_u u^T + (lambda_u.u)(I - 3 u u^T)) / |e|^2;
-    grad_q theta = B^T J^T dtheta/dz,  hess_q theta = B^T (J^T theta_zz J + sum lambda d2z) B.
+    grad theta = (c grad s - s grad c) / r^2,        r^2 = s^2 + c^2,
+    hess theta = f_cc (gc gc^T - gs gs^T) + f_cs (gc gs^T + gs gc^T) + f_c hess c + f_s hess s,
+        f_c = -s/r^2, f_s = c/r^2, f_cc = 2cs/r^4, f_cs = (s^2 - c^2)/r^4  (atan2 derivatives),
+    grad V = (p x m, m x e, e x p),   hess V: blocks (e,p) = [eps_ijk m_k], (e,m) = -[eps_ijk p_k],
+        (p,m) = [eps_ijk e_k] and their transposes,
+    grad s = -(V (u, 0, 0) + |e| grad V),   u = e/|e|,
+    hess s = -(V (I - u u^T)/|e| on (e,e) + (u,0,0) grad V^T + grad V (u,0,0)^T + |e| hess V),
+    grad c = (m (e.p) + p (e.m) - 2 e (p.m),  e (e.m) - m |e|^2,  e (e.p) - p |e|^2),
+    hess c: (e,e) = m p^T + p m^T - 2 (p.m) I,  (e,p) = m e^T - 2 e m^T + (e.m) I,
+            (e,m) = p e^T - 2 e p^T + (e.p) I,  (p,m) = e e^T - |e|^2 I,  (p,p) = (m,m) = 0;
+    and on q = (x0, x1, x2, x3), since y = (x1 - x0, x2 - x0, x3 - x0):
+    grad_q = (-sum of the three blocks, blocks),  hess_q = B^T hess_y B.
 
-Every factor is checked by finite differences in ``tests/test_plate.py``.
+Every formula is checked by finite differences in ``tests/test_plate.py`` on random, strongly
+folded hinges of both signs.
 """
 
 from __future__ import annotations
@@ -48,34 +50,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-_EPS3 = np.zeros((3, 3, 3))
-_EPS3[0, 1, 2] = _EPS3[1, 2, 0] = _EPS3[2, 0, 1] = 1.0
-_EPS3[0, 2, 1] = _EPS3[2, 1, 0] = _EPS3[1, 0, 2] = -1.0
 _I3 = np.eye(3)
-# y = (e, p, m) = _B q for q = (x0, x1, x2, x3)
-_B = np.zeros((9, 12))
-for _k, _node in enumerate((1, 2, 3)):
-    _B[3 * _k:3 * _k + 3, 0:3] = -_I3
-    _B[3 * _k:3 * _k + 3, 3 * _node:3 * _node + 3] = _I3
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """``(n, 3) -> (n, 3, 3)`` with ``_skew(v) @ w = v x w``."""
-    return np.einsum("ijk,nj->nik", _EPS3, v)
-
-
-def _eps_dot(v: np.ndarray) -> np.ndarray:
-    """``(n, 3) -> (n, 3, 3)``: ``out[n, i, j] = eps_ijk v[n, k]`` (equals ``-_skew(v)``)."""
-    return np.einsum("ijk,nk->nij", _EPS3, v)
 
 
 def dihedral_angle(x0, x1, x2, x3) -> np.ndarray:
     """Signed dihedral angle ``theta (n,)`` in (-pi, pi] of hinges ``(x0, x1, x2, x3)``,
     each ``(n, 3)``; see the module docstring for the orientation."""
-    e = x1 - x0
-    a, b = np.cross(e, x2 - x0), np.cross(x3 - x0, e)
-    u = e / np.linalg.norm(e, axis=1)[:, None]
-    return np.arctan2(np.sum(np.cross(a, b) * u, axis=1), np.sum(a * b, axis=1))
+    e, p, m = x1 - x0, x2 - x0, x3 - x0
+    ee = np.einsum("ni,ni->n", e, e)
+    s = -np.sqrt(ee) * np.einsum("ni,ni->n", e, _cross(p, m))
+    c = np.einsum("ni,ni->n", e, m) * np.einsum("ni,ni->n", e, p) - ee * np.einsum("ni,ni->n", p, m)
+    return np.arctan2(s, c)
 
 
 def dihedral_derivatives(x0, x1, x2, x3, order: int = 2):

@@ -87,6 +87,24 @@ def plate_terms(nodes: np.ndarray, triangles: np.ndarray, youngs: float, thickne
     return [stretch, HingeTerm.from_rest(hinges, x, k_b)]
 
 
+def drop_clamped(terms: list, fixed_nodes: np.ndarray) -> list:
+    """The terms without the elements whose nodes are all clamped: such elements never change,
+    so they add nothing to the free residual or tangent (their energy stays at its rest value,
+    zero), and dropping them saves work and the very stiff hinges inside a thin clamp strip."""
+    fixed = np.asarray(fixed_nodes, bool)
+    out = []
+    for t in terms:
+        if isinstance(t, StretchTerm):
+            keep = ~fixed[t.edges].all(axis=1)
+            out.append(StretchTerm(t.edges[keep], t.l0[keep], t.k[keep]))
+        elif isinstance(t, HingeTerm):
+            keep = ~fixed[t.hinges].all(axis=1)
+            out.append(HingeTerm(t.hinges[keep], t.theta_bar[keep], t.k_b[keep]))
+        else:
+            raise TypeError(f"drop_clamped: unknown term {type(t).__name__}")
+    return out
+
+
 def lumped_mass(nodes: np.ndarray, triangles: np.ndarray, density: float, thickness: float):
     """Node masses ``(N,)`` (kg): each triangle's ``rho A h`` split 1/3 to each of its nodes."""
     rho = _check_positive("density", density)
