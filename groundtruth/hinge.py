@@ -71,6 +71,12 @@ def dihedral_derivatives(x0, x1, x2, x3, order: int = 2):
     ``c = (e.m)(e.p) - |e|^2 (p.m)`` (see the module docstring), then ``q``-derivatives are
     ``B^T (.)`` and ``B^T (.) B``. Singular when a triangle is degenerate, as the angle is.
     """
+    theta, g, H = _dihedral_y(x0, x1, x2, x3, order)
+    return theta, _to_nodes(g), None if H is None else _to_nodes_2(H)
+
+
+def _dihedral_y(x0, x1, x2, x3, order: int):
+    """theta and its gradient ``(n, 9)`` and Hessian ``(n, 9, 9)`` on ``y = (e, p, m)``."""
     n = x0.shape[0]
     e, p, m = x1 - x0, x2 - x0, x3 - x0
     ee = np.einsum("ni,ni->n", e, e)
@@ -91,9 +97,8 @@ def dihedral_derivatives(x0, x1, x2, x3, order: int = 2):
                          e * em[:, None] - m * ee[:, None],
                          e * ep[:, None] - p * ee[:, None]], axis=1)
     grad_y = (c[:, None] * ds - s[:, None] * dc) / r2[:, None]
-    grad = _to_nodes(grad_y)
     if order < 2:
-        return theta, grad, None
+        return theta, grad_y, None
 
     r4 = r2 * r2
     f_c, f_s = -s / r2, c / r2
@@ -127,7 +132,7 @@ def dihedral_derivatives(x0, x1, x2, x3, order: int = 2):
     for (i, j), b in (((0, 3), b_ep), ((0, 6), b_em), ((3, 6), b_pm)):
         H[:, i:i + 3, j:j + 3] += b
         H[:, j:j + 3, i:i + 3] += b.transpose(0, 2, 1)
-    return theta, grad, _to_nodes_2(H)
+    return theta, grad_y, H
 
 
 def _add_eps(H: np.ndarray, i: int, j: int, v: np.ndarray) -> None:
@@ -181,16 +186,16 @@ def hinge_energy(x0, x1, x2, x3, theta_bar, k_b, order: int = 2):
     if order < 1:
         d = dihedral_angle(x0, x1, x2, x3) - theta_bar
         return 0.5 * k_b * d * d, None, None
-    theta, g, h = dihedral_derivatives(x0, x1, x2, x3, order)
+    theta, g, h = _dihedral_y(x0, x1, x2, x3, order)
     d = theta - theta_bar
-    energy = 0.5 * k_b * d * d
-    kd = k_b * d
-    grad = kd[:, None] * g if np.ndim(kd) else kd * g
+    kb = np.broadcast_to(k_b, d.shape)
+    energy = 0.5 * kb * d * d
+    grad = _to_nodes((kb * d)[:, None] * g)
     if order < 2:
         return energy, grad, None
-    kb = np.broadcast_to(k_b, d.shape)
-    hess = kb[:, None, None] * g[:, :, None] * g[:, None, :] + (kb * d)[:, None, None] * h
-    return energy, grad, hess
+    # on y = (e, p, m) first (9 x 9), then to the nodes once
+    hess = (kb * d)[:, None, None] * h + kb[:, None, None] * (g[:, :, None] * g[:, None, :])
+    return energy, grad, _to_nodes_2(hess)
 
 
 def hinge_stiffness(youngs: float, thickness: float, edge_length: np.ndarray,

@@ -84,10 +84,12 @@ def newton_step(system: MechanicalSystem, q_n: np.ndarray, v_n: np.ndarray, dt: 
     else:
         q = q_n + (dt * v_n + dt * dt * a_n) * free
     res = np.inf
-    for _ in range(max_iter):
-        # the tangent is assembled only when another update is needed (the converged
-        # iterate needs just the gradient); the iterates are those of plain Newton
-        g = system.gradient(q)
+    # the iterates are those of plain Newton; the tangent is assembled with the gradient at the
+    # predictor (almost always needed) and later only when another update is needed
+    g, K = system.gradient_hessian(q, diag)
+    for it in range(max_iter):
+        if it > 0:
+            g, K = system.gradient(q), None
         f = m * ((q - q_n) / dt - v_n) / dt + g + c * (q - q_n) / dt - f_ext
         f[~free] = 0.0
         res = float(np.max(np.abs(f)))
@@ -97,7 +99,9 @@ def newton_step(system: MechanicalSystem, q_n: np.ndarray, v_n: np.ndarray, dt: 
             return None, None, res
         if res < tol:
             return q, (q - q_n) / dt, res
-        q = q - system.gradient_hessian(q, diag)[1].solve(f)
+        if K is None:
+            K = system.gradient_hessian(q, diag)[1]
+        q = q - K.solve(f)
     g = system.gradient(q)
     f = (m * ((q - q_n) / dt - v_n) / dt + g + c * (q - q_n) / dt - f_ext)[free]
     res = float(np.max(np.abs(f)))

@@ -7,13 +7,9 @@ apart (a narrow band, see ``groundtruth.assembly.Assembler.banded``). Each cell 
 is cut by one diagonal, alternating in a checkerboard, so the mesh is mirror symmetric about the
 centre line ``y = 0`` when ``n_width`` is even and has no preferred diagonal direction.
 
-Rows may be graded toward ``x = 0`` (``graded_rows``):
-
-    x(xi) = L (exp(kappa xi) - 1) / (exp(kappa) - 1),   kappa = ln(grading),   xi = i / n,
-
-a smooth map, so refining ``n`` at a fixed ``grading`` is a uniform refinement in ``xi``; the
-spacing grows from about ``L kappa / (n (e^kappa - 1))`` at ``x = 0`` to ``grading`` times that
-at ``x = L``.
+Rows may be refined toward ``x = 0`` (``graded_rows``) with a spacing that is ``grading``
+times finer at the clamp and relaxes to uniform over a boundary-layer length ``layer``; the map
+is smooth, so refining ``n`` at fixed ``grading`` and ``layer`` refines uniformly.
 """
 
 from __future__ import annotations
@@ -24,18 +20,34 @@ import numpy as np
 PATTERNS = ("columns", "checker", "mirror", "uniform")
 
 
-def graded_rows(length: float, n: int, grading: float = 1.0) -> np.ndarray:
-    """``n + 1`` increasing row positions from 0 to ``length`` (m), ``grading`` = ratio of the
-    continuum spacing at ``length`` to that at 0 (1 = uniform)."""
+def graded_rows(length: float, n: int, grading: float = 1.0, layer: float = 0.02) -> np.ndarray:
+    """``n + 1`` increasing row positions from 0 to ``length`` (m), refined near 0.
+
+    The row spacing follows ``h(x) ~ 1 - (1 - 1/grading) exp(-x / layer)``: ``grading`` times
+    finer at x = 0 than far away, relaxing to uniform over the length ``layer`` (m). Rows sit
+    at equal steps of ``xi(x) = F(x) / F(length)``, ``F(x) = int_0^x dx' / h(x')
+    = x + layer ln((1 - a e^(-x/layer)) / (1 - a))``, ``a = 1 - 1/grading``, so refining ``n``
+    at fixed ``grading`` and ``layer`` is a uniform refinement in xi.
+    """
     if not (isinstance(n, (int, np.integer)) and n >= 1):
         raise ValueError(f"graded_rows: n must be an int >= 1, got {n!r}")
-    if not (np.isfinite(grading) and grading > 0):
-        raise ValueError(f"graded_rows: grading must be a positive number, got {grading!r}")
-    xi = np.arange(n + 1) / n
-    kappa = np.log(grading)
-    if abs(kappa) < 1e-12:
-        return length * xi
-    return length * np.expm1(kappa * xi) / np.expm1(kappa)
+    for name, v in (("grading", grading), ("layer", layer)):
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"graded_rows: {name} must be a positive number, got {v!r}")
+    if grading < 1:
+        raise ValueError(f"graded_rows: grading must be >= 1 (finer at x = 0), got {grading!r}")
+    a = 1.0 - 1.0 / grading
+    F = lambda x: x + layer * (np.log1p(-a * np.exp(-x / layer)) - np.log1p(-a))
+    xi = np.arange(n + 1) / n * F(length)
+    x = xi.copy()                                   # Newton on F(x) = xi, F' = 1/h >= 1
+    for _ in range(60):
+        h = 1.0 - a * np.exp(-x / layer)
+        step = (F(x) - xi) * h
+        x = np.clip(x - step, 0.0, length)
+        if np.max(np.abs(step)) < 1e-15 * length:
+            break
+    x[0], x[-1] = 0.0, length
+    return x
 
 
 def strip_mesh(x_rows: np.ndarray, width: float, n_width: int, pattern: str = "checker"):

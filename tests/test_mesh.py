@@ -28,21 +28,25 @@ def signed_areas(nodes, tri):
 
 class TestGradedRows:
     def test_endpoints_monotone_and_grading(self):
-        x = graded_rows(1.0, 48, 12.0)
-        assert x[0] == 0.0 and x[-1] == pytest.approx(1.0)
+        x = graded_rows(1.0, 48, 16.0, 0.03)
+        assert x[0] == 0.0 and x[-1] == 1.0
         dx = np.diff(x)
-        assert np.all(dx > 0) and np.all(np.diff(dx) > 0)
-        # continuum spacing ratio is `grading`; the discrete one is grading^(1 - 1/n)
-        assert dx[-1] / dx[0] == pytest.approx(12.0 ** (1 - 1 / 48))
+        assert np.all(dx > 0) and np.all(np.diff(dx) > -1e-15)
+        # fine rows: the spacing at the clamp is `grading` times the spacing far from it
+        fine = np.diff(graded_rows(1.0, 4000, 16.0, 0.03))
+        assert fine[-1] / fine[0] == pytest.approx(16.0, rel=0.01)
+        # and the refinement is confined to a few `layer` lengths
+        assert fine[-1] / fine[len(fine) // 4] == pytest.approx(1.0, abs=1e-6)
 
     def test_uniform(self):
         np.testing.assert_allclose(graded_rows(2.0, 4, 1.0), [0, 0.5, 1, 1.5, 2])
 
     def test_refinement_nests(self):
         """Doubling n at fixed grading adds one row between each pair: a uniform refinement in xi."""
-        np.testing.assert_allclose(graded_rows(1.0, 48, 12.0)[::2], graded_rows(1.0, 24, 12.0))
+        np.testing.assert_allclose(graded_rows(1.0, 48, 16.0, 0.03)[::2],
+                                   graded_rows(1.0, 24, 16.0, 0.03), atol=1e-14)
 
-    @pytest.mark.parametrize("n, grading", [(0, 1.0), (2.5, 1.0), (4, 0.0), (4, np.nan)])
+    @pytest.mark.parametrize("n, grading", [(0, 1.0), (2.5, 1.0), (4, 0.0), (4, np.nan), (4, 0.5)])
     def test_bad_input(self, n, grading):
         with pytest.raises(ValueError, match="graded_rows"):
             graded_rows(1.0, n, grading)
@@ -52,7 +56,7 @@ class TestStripMesh:
     @pytest.mark.parametrize("pattern", PATTERNS)
     @pytest.mark.parametrize("n_width", [1, 2, 4])
     def test_counts_orientation_topology(self, pattern, n_width):
-        rows = graded_rows(1.0, 7, 3.0)
+        rows = graded_rows(1.0, 7, 3.0, 0.1)
         nodes, tri = strip_mesh(rows, 0.1, n_width, pattern)
         R = rows.size
         assert nodes.shape == (R * (n_width + 1), 3) and tri.shape == (2 * (R - 1) * n_width, 3)
@@ -101,7 +105,7 @@ class TestStripMesh:
         assert np.all(np.abs(d[:, 0]) > 0) and np.all(np.abs(d[:, 1]) > 0)
 
     def test_edge_area_sums(self):
-        nodes, tri = strip_mesh(graded_rows(1.0, 6, 4.0), 0.1, 2)
+        nodes, tri = strip_mesh(graded_rows(1.0, 6, 4.0, 0.1), 0.1, 2)
         edges = mesh_edges(tri)
         area = triangle_areas(nodes, tri)
         sums = edge_area_sums(tri, area, edges)
