@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import numpy as np
 
-
 PATTERNS = ("columns", "checker", "mirror", "uniform")
 
 
@@ -59,7 +58,8 @@ def strip_mesh(x_rows: np.ndarray, width: float, n_width: int, pattern: str = "c
         raise ValueError(f"strip_mesh: pattern must be one of {PATTERNS}, got {pattern!r}")
     x = np.asarray(x_rows, float)
     if x.ndim != 1 or x.size < 2 or np.any(np.diff(x) <= 0):
-        raise ValueError(f"strip_mesh: x_rows must be >= 2 strictly increasing positions, got {x!r}")
+        raise ValueError(f"strip_mesh: x_rows must be >= 2 strictly increasing positions, "
+                         f"got {x!r}")
     if not (isinstance(n_width, (int, np.integer)) and n_width >= 1):
         raise ValueError(f"strip_mesh: n_width must be an int >= 1, got {n_width!r}")
     nj = n_width + 1
@@ -103,7 +103,8 @@ def check_mesh(nodes: np.ndarray, triangles: np.ndarray, rel_area_tol: float = 1
     if x.ndim != 2 or x.shape[1] != 3 or not np.all(np.isfinite(x)):
         raise ValueError(f"mesh nodes must be a finite (N, 3) array, got shape {x.shape}")
     if t.ndim != 2 or t.shape[1] != 3 or t.shape[0] == 0:
-        raise ValueError(f"mesh triangles must be a non-empty (M, 3) int array, got shape {t.shape}")
+        raise ValueError(f"mesh triangles must be a non-empty (M, 3) int array, "
+                         f"got shape {t.shape}")
     if t.min() < 0 or t.max() >= x.shape[0]:
         raise ValueError(f"mesh triangles refer to nodes outside [0, {x.shape[0]})")
     area = triangle_areas(x, t)
@@ -119,7 +120,8 @@ def check_mesh(nodes: np.ndarray, triangles: np.ndarray, rel_area_tol: float = 1
     _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     if count.max() > 2:
         e = key[np.flatnonzero(count[inv.ravel()] > 2)[0]]
-        raise ValueError(f"non-manifold mesh: edge {e.tolist()} is shared by more than two triangles")
+        raise ValueError(f"non-manifold mesh: edge {e.tolist()} is shared by more than two "
+                         "triangles")
     _, c2 = np.unique(half, axis=0, return_counts=True)
     if c2.max() > 1:
         raise ValueError("inconsistently oriented mesh: two triangles traverse a shared edge in "

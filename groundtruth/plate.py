@@ -4,7 +4,7 @@ For a plate of Young's modulus Y (Pa), thickness h (m) and density rho (kg/m^3) 
 counter-clockwise triangles:
 
 - stretching: every edge is a spring (``groundtruth.stretch``),
-  E_s = 1/2 k_s l0 (|e|/l0 - 1)^2,  k_s = Y h (A_A + A_B) / l0,
+  E_s = 1/2 k_s l0 (|e|/l0 - 1)^2,  k_s = max((sqrt 3 / 2) Y h l0, Y h (A_A + A_B) / l0),
   which is the DEP constant (sqrt 3 / 2) Y h l0 on equilateral triangles (see
   ``spring_stiffness`` for why it is weighted by the areas of the edge's triangles);
 - bending: every interior edge is a hinge (``groundtruth.hinge``),
@@ -39,12 +39,15 @@ def spring_stiffness(youngs: float, thickness: float, rest_length: np.ndarray,
 
     Without ``area_sum`` it is the Discrete Elastic Plates value k_s = (sqrt 3 / 2) Y h l0.
     With the summed rest area of the triangles that share each edge (one triangle on the
-    boundary) it is k_s = Y h (A_A + A_B) / l0, i.e. the DEP value times the calibration factor
-    psi = (2 / sqrt 3)(A_A + A_B) / l0^2, which is 1 on interior edges of equilateral triangles.
+    boundary) it is k_s = max((sqrt 3 / 2) Y h l0, Y h (A_A + A_B) / l0), i.e. the DEP value
+    times the calibration factor max(1, psi), psi = (2 / sqrt 3)(A_A + A_B) / l0^2, which is 1 on
+    interior edges of equilateral triangles.
     On a row mesh (``groundtruth.mesh.strip_mesh``) every triangle has exactly one edge along x,
     so the edges along x of a strip carry exactly its tensile stiffness Y h w whatever the row
     spacing dx; the uniform value gives (n_width + 1)(sqrt 3 / 2) Y h dx instead, which vanishes
-    as the rows are refined (about 1/16 of Y h w at the clamp of the default plate mesh).
+    as the rows are refined (1/19 of Y h w at the clamp of the default plate mesh). The ``max``
+    keeps the DEP value on long edges (the width of skinny cells would otherwise be nearly free,
+    which made Newton fail on finely graded meshes).
     """
     Y = _check_positive("youngs", youngs)
     h = _check_positive("thickness", thickness)
@@ -125,6 +128,6 @@ def clamp_mask(nodes: np.ndarray, x_clamp: float, min_rows: int = 2, tol: float 
                          f"to {x.max():.4g} m); move the clamp or add clamp rows")
     rows = np.unique(np.round(x[fixed], 12)).size
     if rows < min_rows:
-        raise ValueError(f"the clamp x <= {x_clamp!r} m fixes {rows} row(s) of nodes; a hinge plate "
-                         f"needs at least {min_rows} clamped rows to hold the slope")
+        raise ValueError(f"the clamp x <= {x_clamp!r} m fixes {rows} row(s) of nodes; a hinge "
+                         f"plate needs at least {min_rows} clamped rows to hold the slope")
     return fixed

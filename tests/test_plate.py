@@ -186,8 +186,8 @@ class TestPlateSystem:
         R, t = rotation(rng), rng.normal(size=3)
         q2 = (q.reshape(-1, 3) @ R.T + t).ravel()
         assert s.energy(q2) == pytest.approx(s.energy(q), rel=1e-10)
-        np.testing.assert_allclose(s.gradient(q2).reshape(-1, 3), s.gradient(q).reshape(-1, 3) @ R.T,
-                                   atol=1e-9 * np.abs(s.gradient(q)).max())
+        g, g2 = s.gradient(q).reshape(-1, 3), s.gradient(q2).reshape(-1, 3)
+        np.testing.assert_allclose(g2, g @ R.T, atol=1e-9 * np.abs(g).max())
 
     def test_mass_load_and_clamp(self):
         s = CASE.system(Y_MID)
@@ -262,33 +262,34 @@ class TestStatics:
 
 class TestStaticConvergence:
     """Tip of the static cantilever at alpha = 283 under refinement of the rows (n_length
-    24 -> 192 at fixed grading): successive differences shrink at second order, and the
-    limit is the elastica within 0.01 % of L."""
+    12 -> 96 at fixed grading map): successive differences shrink at second order (measured
+    1.7-2.0), and the tip approaches the elastica (0.06 % of L at the default 48 rows,
+    0.02 % at 96)."""
 
     expected_rate = 2.0
     youngs = 5e8
 
     def test_rate(self):
         tips = np.array([static_tip(dataclasses.replace(CASE, n_length=n), self.youngs)
-                         for n in (24, 48, 96, 192)])
+                         for n in (12, 24, 48, 96)])
         diffs = np.linalg.norm(np.diff(tips[:, [0, 2]], axis=0), axis=1)
         rate = -np.polyfit(np.log2([1, 2, 4]), np.log2(diffs), 1)[0]
         assert rate == pytest.approx(self.expected_rate, abs=0.3)
         el = cantilever_elastica(CASE.load_parameter(self.youngs))
         err = np.hypot(tips[:, 0] - el.tip[0], -tips[:, 2] - el.tip[1])
-        assert err[1] < 5e-4 and err[-1] < 1e-4
+        assert err[2] < 1e-3 and err[3] < 3e-4 and np.all(np.diff(err) < 0)
 
 
 class TestDynamics:
     def test_first_natural_frequency(self):
         """Free vibration (no gravity, no damping) from a slightly bent static shape: the
         period of the tip matches omega_1 = 1.875^2 sqrt(EI / (rho w h L^4)) within 3 %
-        (measured -0.11 %)."""
+        (measured -0.1 %)."""
         case = dataclasses.replace(CASE, damping_rate=0.0)
         EI, mu = case.bending_rigidity(Y_MID), case.density * case.width * case.thickness
         omega = 1.875104**2 * np.sqrt(EI / (mu * case.length**4))
         period = 2 * np.pi / omega
-        bent = dataclasses.replace(case, gravity=0.05 * EI / (mu * case.length**3),
+        bent = dataclasses.replace(case, gravity=0.2 * EI / (mu * case.length**3),
                                    newton_rtol=1e-3)
         q0 = bent.solve_static(Y_MID).ravel()
         system = bent.system(Y_MID)
@@ -308,7 +309,8 @@ class TestDynamics:
         case = dataclasses.replace(CASE, damping_rate=0.0)
         res = case.simulate(Y_MID, t_end=0.15)
         s = case.system(Y_MID)
-        E = np.array([s.total_energy(p.ravel(), v.ravel()) for p, v in zip(res["pos"], res["vel"])])
+        E = np.array([s.total_energy(p.ravel(), v.ravel())
+                      for p, v in zip(res["pos"], res["vel"], strict=True)])
         scale = case.line_load * case.length**2
         assert np.all(np.diff(E) <= 1e-9 * scale)
         assert E[-1] < E[0] and -np.min(res["pos"][-1][:, 2]) > 0.05   # it fell and dissipated
@@ -343,7 +345,8 @@ class TestDynamicConvergence:
 
     def test_mesh(self):
         tips = [self.tip(n_length=n, n_width=w) for n, w in ((24, 2), (48, 2), (96, 2))]
-        d = [np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))) for a, b in zip(tips, tips[1:])]
+        d = [np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1)))
+             for a, b in zip(tips[:-1], tips[1:], strict=True)]
         assert d[1] < 0.6 * d[0]
         assert d[1] < 0.01
 
