@@ -461,7 +461,10 @@ class PlateCase(CaseBase):
         mass = lumped_mass(nodes, tri, self.density, self.thickness)
         force = np.zeros((len(nodes), 3))
         force[:, 2] = -mass * self.gravity
-        scale = self.density * self.thickness * self.width * self.length * self.gravity / len(nodes)
+        # Newton tolerances are relative to a node's weight, floored at 1e-10 Y h w: the residual
+        # cannot drop below ~1e-15 Y h w in double precision (very stiff plates, tiny loads)
+        weight = self.density * self.thickness * self.width * self.length * self.gravity
+        scale = max(weight / len(nodes), 1e-10 * Y * self.thickness * self.width)
         terms = plate_terms(nodes, tri, Y, self.thickness, hinge_factor=self._hinge_factor,
                             spring_weights=self.spring_weights)
         terms = drop_clamped(terms, fixed)
