@@ -5,7 +5,9 @@ One backward-Euler step from ``(q_n, v_n)`` solves for ``q`` the residual
     f(q) = M [(q - q_n)/dt - v_n]/dt + grad E(q) + C (q - q_n)/dt - F = 0,
 
 with tangent ``M/dt^2 + hess E(q) + C/dt``; then ``v_{n+1} = (q - q_n)/dt``. Newton stops when
-``max |f| < tol`` on the free dofs, ``tol = rtol * force_scale``. A step whose Newton fails is
+``max |f| < tol`` on the free dofs, ``tol = rtol * force_scale``, or when the Newton update
+has shrunk to roundoff (``max |dq| < 1e-13 max(1, |q|)``: stiff systems have a residual floor
+of about machine epsilon times the internal forces, which may exceed ``tol``). A step whose Newton fails is
 retried as two half steps, recursively, ``max_halvings`` times; then ``ConvergenceError`` says
 at which time, step and residual it failed.
 """
@@ -18,6 +20,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from groundtruth.system import MechanicalSystem
+
+
+_XTOL = 1e-13
 
 
 class ConvergenceError(RuntimeError):
@@ -79,7 +84,10 @@ def newton_step(system: MechanicalSystem, q_n: np.ndarray, v_n: np.ndarray, dt: 
             return None, None, res
         if res < tol:
             return q, (q - q_n) / dt, res
-        q = q - K.solve(f)
+        dq = K.solve(f)
+        q = q - dq
+        if np.max(np.abs(dq)) < _XTOL * max(1.0, np.max(np.abs(q))):
+            return q, (q - q_n) / dt, res
     g = system.gradient(q)
     f = (m * ((q - q_n) / dt - v_n) / dt + g + c * (q - q_n) / dt - f_ext)[free]
     res = float(np.max(np.abs(f)))
@@ -176,5 +184,8 @@ def _static_newton(system, q, lam, tol, max_iter, free, zero):
             return None, res
         if res < tol:
             return q, res
-        q = q - K.solve(f)
+        dq = K.solve(f)
+        q = q - dq
+        if np.max(np.abs(dq)) < _XTOL * max(1.0, np.max(np.abs(q))):
+            return q, res
     return None, res
