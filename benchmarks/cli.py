@@ -25,10 +25,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    from benchmarks import plugins
     from groundtruth.implicit import ConvergenceError
     from groundtruth.store import StoreError
-
-    from benchmarks import plugins
 
     args = build_parser().parse_args(argv)
     try:
