@@ -11,7 +11,8 @@ from groundtruth import store
 
 
 def test_simulate_and_export_roundtrip(tmp_path, capsys, monkeypatch):
-    monkeypatch.chdir(tmp_path)  # meshio's reader resolves the .h5 beside the cwd
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "elsewhere").mkdir()
     out = tmp_path / "x.npz"
     assert main(["simulate", "rod_falling", "--youngs", "1e9", "--t-end", "1",
                  "--out", str(out), "--no-progress"]) == 0
@@ -19,8 +20,9 @@ def test_simulate_and_export_roundtrip(tmp_path, capsys, monkeypatch):
     assert d["pos"].shape == (1, 11, 21, 3) and d["youngs"].tolist() == [1e9]
     assert str(d["split"]) == "single"
     assert "wrote 11 frames" in capsys.readouterr().out
-    x = tmp_path / "x.xdmf"
+    x = tmp_path / "elsewhere" / "x.xdmf"
     assert main(["export", "--file", str(out), "--out", str(x)]) == 0
+    assert (tmp_path / "elsewhere" / "x.h5").exists() and not (tmp_path / "x.h5").exists()
     import meshio
 
     with meshio.xdmf.TimeSeriesReader(str(x)) as r:
