@@ -10,7 +10,7 @@ import sys
 
 from benchmarks.registry import RegistryError
 
-COMMANDS = ["generate", "simulate", "export"]
+COMMANDS = ["generate", "simulate", "export", "crosscheck"]
 
 
 def build_parser() -> argparse.ArgumentParser:
