@@ -44,6 +44,7 @@ class Resolution:
         fem_nx, fem_ny: FEM elements along the length and through the height.
         integrator: FEM time integrator (``groundtruth.fem.INTEGRATORS``).
         poisson: Poisson ratio of the FEM material.
+        dt_scale: both sides' time step relative to the case's.
     """
 
     variant: str
@@ -52,10 +53,7 @@ class Resolution:
     fem_ny: int = 1
     integrator: str = "backward_euler"
     poisson: float = 0.0
-
-    def key(self) -> tuple:
-        return (self.variant, self.ref_nodes, self.fem_nx, self.fem_ny, self.integrator,
-                round(self.poisson, 6))
+    dt_scale: float = 1.0
 
 
 @dataclass
@@ -140,11 +138,15 @@ def der_clamp_position(case) -> float:
     return (clamped[-1] - 0.5) * case.dL
 
 
+def _resolved(case, res: Resolution):
+    return dataclasses.replace(case, n_nodes=res.ref_nodes, dt=case.dt * res.dt_scale)
+
+
 def der_side(case, youngs: float) -> Callable[[Resolution], SideResult]:
     """The DER rod of ``case`` with ``ref_nodes`` nodes (the clamp keeps its node indices)."""
 
     def run(res: Resolution) -> SideResult:
-        c = dataclasses.replace(case, n_nodes=res.ref_nodes)
+        c = _resolved(case, res)
         t0 = time.perf_counter()
         sim = c.simulate(youngs)
         wall = time.perf_counter() - t0
@@ -164,7 +166,7 @@ def rod_fem_side(case, youngs: float, rtol: float = 1e-8) -> Callable:
     from groundtruth import fem
 
     def run(res: Resolution, points: np.ndarray) -> SideResult:
-        c = dataclasses.replace(case, n_nodes=res.ref_nodes)
+        c = _resolved(case, res)
         x_c = der_clamp_position(c)
         height, thick = fem.rod_section(c.r0)
         mat = fem.Material(youngs, res.poisson, c.rho_metal, thick, "plane_stress")
@@ -198,6 +200,7 @@ ROD_STUDY = (
     Resolution("refine", 81, 160),
     Resolution("fem_refined", 21, 80),
     Resolution("fem_newmark", 21, 40, integrator="newmark"),
+    Resolution("fem_newmark", 21, 40, integrator="newmark", dt_scale=0.25),
     Resolution("poisson_0.3", 21, 40, poisson=0.3),
 )
 
@@ -210,7 +213,8 @@ def rod_crosscheck(case, youngs: float | None = None,
     y = float(case.reference_youngs if youngs is None else youngs)
     der_clamp_position(case)  # validates the clamp
     return CrossCheck(case.id, y, der_side(case, y), rod_fem_side(case, y), tuple(resolutions),
-                      target_l2, {"case": case.to_dict(), "fem_section": "sqrt3 r0 x pi r0/sqrt3",
+                      target_l2, {"case": case.to_dict(), "dt": case.dt,
+                                  "fem_section": "sqrt3 r0 x pi r0/sqrt3",
                                   "fem_model": "plane_stress", "fem_element": "ElementQuad2",
                                   "clamp": "DER: nodes 0..k fixed; FEM: edge x = x_k - dL/2"})
 
@@ -243,7 +247,7 @@ def plate_strip_crosscheck(dep_side: Callable[[Resolution], SideResult], youngs:
     from groundtruth import fem
 
     def fem_side(res: Resolution, points: np.ndarray) -> SideResult:
-        out = fem.fem_plate_strip(youngs, t_save, damping, dt=dt, clamp_x=clamp_x,
+        out = fem.fem_plate_strip(youngs, t_save, damping, dt=dt * res.dt_scale, clamp_x=clamp_x,
                                   nx=res.fem_nx, ny=res.fem_ny, integrator=res.integrator,
                                   **plate)
         return fem_result(out["model"], t_save, out["u"], points, out["wall_s"], out["stats"])
@@ -278,8 +282,8 @@ def get_crosscheck(case_id: str, youngs: float | None = None) -> CrossCheck:
 
 SUMMARY_COLUMNS = {
     "case": "{}", "variant": "{}", "ref_nodes": "{:d}", "fem_nx": "{:d}", "fem_ny": "{:d}",
-    "integrator": "{}", "poisson": "{:.4f}", "youngs": "{:.6e}", "l2_rel": "{:.6e}",
-    "max_shape_m": "{:.6e}", "max_shape_rel": "{:.6e}", "ref_wall_s": "{:.2f}",
+    "integrator": "{}", "poisson": "{:.4f}", "dt": "{:.3e}", "youngs": "{:.6e}",
+    "l2_rel": "{:.6e}", "max_shape_m": "{:.6e}", "max_shape_rel": "{:.6e}", "ref_wall_s": "{:.2f}",
     "fem_wall_s": "{:.2f}",
 }
 TRAJECTORY_COLUMNS = {
@@ -293,7 +297,8 @@ def run_resolution(check: CrossCheck, res: Resolution) -> tuple[dict, SideResult
     fe = check.fem(res, ref.points)
     row = {"case": check.case_id, "variant": res.variant, "ref_nodes": res.ref_nodes,
            "fem_nx": res.fem_nx, "fem_ny": res.fem_ny, "integrator": res.integrator,
-           "poisson": res.poisson, "youngs": check.youngs, **compare(ref, fe),
+           "poisson": res.poisson, "dt": float(check.config.get("dt", 0.0)) * res.dt_scale,
+           "youngs": check.youngs, **compare(ref, fe),
            "ref_wall_s": ref.wall_s, "fem_wall_s": fe.wall_s}
     return row, ref, fe
 
@@ -325,7 +330,8 @@ def read_summary(path: Path) -> list[dict]:
 
 def _row_key(r: dict) -> tuple:
     return (r["case"], r["variant"] != "default", r["variant"], r["ref_nodes"], r["fem_nx"],
-            r["fem_ny"], r["integrator"], round(float(r["poisson"]), 6))
+            r["fem_ny"], r["integrator"], round(float(r["poisson"]), 6),
+            -round(float(r["dt"]), 12))
 
 
 def update_summary(path: Path, new_rows: list[dict]) -> list[dict]:
@@ -342,7 +348,7 @@ def trajectory_rows(ref: SideResult, fe: SideResult) -> list[dict]:
     d = ref.tip - fe.tip
     return [{"time": float(t), "ref_tip_ux": a[0], "ref_tip_uy": a[1], "fem_tip_ux": b[0],
              "fem_tip_uy": b[1], "diff_ux": e[0], "diff_uy": e[1], "diff_norm": math.hypot(*e)}
-            for t, a, b, e in zip(ref.t, ref.tip, fe.tip, d)]
+            for t, a, b, e in zip(ref.t, ref.tip, fe.tip, d, strict=True)]
 
 
 def plot(path: Path, check: CrossCheck, ref: SideResult, fe: SideResult, rows: list[dict]):

@@ -2,7 +2,8 @@
 
 All lengths in m, forces in N, EI in N m^2, q in N/m. The elastica is the inextensible,
 shear-rigid large-deflection cantilever under a uniform dead load q (per unit reference length)
-acting in -y; with s = arc length / L, theta the downward rotation of the section and alpha = q L^3 / EI,
+acting in -y; with s = arc length / L, theta the downward rotation of the section and
+alpha = q L^3 / EI,
 
     theta'' = -alpha (1 - s) cos(theta),   theta(0) = 0,   theta'(1) = 0,
     x' = cos(theta),  y' = -sin(theta),    x(0) = y(0) = 0,
@@ -53,8 +54,8 @@ def elastica_uniform(alpha: float, n_steps: int | None = None, n_mesh: int = 201
     """Shape of the uniformly loaded elastica for ``alpha = q L^3 / EI``.
 
     Continuation from the small-load shape in ``n_steps`` geometrically growing load
-    increments (default: 8 per decade of alpha, at least 4). Returns ``s, x, y, theta`` on ``n_mesh`` points, all
-    divided by L (``y`` negative: downward).
+    increments (default: 8 per decade of alpha, at least 4). Returns ``s, x, y, theta`` on
+    ``n_mesh`` points, lengths divided by L (``y`` negative: downward).
     """
     if not (math.isfinite(alpha) and alpha > 0):
         raise ValueError(f"alpha = q L^3 / EI must be positive, got {alpha!r}")

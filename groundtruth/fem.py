@@ -34,8 +34,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
-from skfem import (Basis, BilinearForm, ElementQuad2, ElementVector, LinearForm, MeshQuad,
-                   asm)
+from skfem import Basis, BilinearForm, ElementQuad2, ElementVector, LinearForm, MeshQuad, asm
 from skfem.helpers import dot
 
 from groundtruth.implicit import ConvergenceError, NewtonSettings
@@ -152,7 +151,7 @@ def svk_element(dphi: np.ndarray, ue: np.ndarray, lam: float, mu: float, wdx: np
     force = np.einsum("kIeq,ikIeq,eq->ie", P, dphi, wdx)
     if order < 2:
         return energy, force, None
-    n, (n_el, n_qp) = dphi.shape[0], wdx.shape
+    n, n_el = dphi.shape[0], wdx.shape[0]
     G = np.einsum("kIeq,ikJeq->iIJeq", F, dphi)                 # F^T grad phi_i
     dE = 0.5 * (G + G.transpose(0, 2, 1, 3, 4))
     dphiS = np.einsum("ikJeq,JIeq->ikIeq", dphi, S)            # grad phi_i S
@@ -453,7 +452,7 @@ def simulate(model: FemModel, t_save: np.ndarray, settings: NewtonSettings,
     tol = settings.rtol * model.force_scale
     stats = FemStats()
     us, vs = [u.copy()], [v.copy()]
-    for t0, t1 in zip(t_save[:-1], t_save[1:]):
+    for t0, t1 in zip(t_save[:-1], t_save[1:], strict=True):
         n_sub = max(1, int(np.ceil((t1 - t0) / settings.dt - 1e-9)))
         h = (t1 - t0) / n_sub
         for k in range(n_sub):
