@@ -76,3 +76,12 @@ def elastica_tip(alpha: float) -> tuple[float, float]:
     """Tip displacement ``(dx, dy)/L`` of the uniformly loaded elastica (dy < 0)."""
     _, x, y, _ = elastica_uniform(alpha)
     return float(x[-1] - 1.0), float(y[-1])
+
+
+def effective_clamp(tip_deflection: float, q: float, EI: float, length: float) -> float:
+    """Where a discrete cantilever's clamp acts (m from the fixed end), from its small-load
+    static tip deflection under a uniform load q: ``x_c = L - (8 EI delta / q)^(1/4)``."""
+    if not (tip_deflection > 0 and q > 0 and EI > 0):
+        raise ValueError(f"need a positive deflection, load and EI; got {tip_deflection!r}, "
+                         f"{q!r}, {EI!r}")
+    return length - (8.0 * EI * tip_deflection / q) ** 0.25

@@ -157,8 +157,8 @@ def svk_element(dphi: np.ndarray, ue: np.ndarray, lam: float, mu: float, wdx: np
     dphiS = np.einsum("ikJeq,JIeq->ikIeq", dphi, S)            # grad phi_i S
     w = np.sqrt(wdx)                                             # weights are positive
 
-    def rows(a, scale=1.0):  # (n, ..., e, q) -> (e, n, ... * q), weighted by sqrt(w)
-        a = a * (w * scale)
+    def rows(a):  # (n, ..., e, q) -> (e, n, ... * q), weighted by sqrt(w)
+        a = a * w
         return np.moveaxis(a, -2, 0).reshape(n_el, n, -1)
 
     geo = rows(dphi) @ rows(dphiS).transpose(0, 2, 1)
