@@ -10,7 +10,7 @@ import sys
 
 from benchmarks.registry import RegistryError
 
-COMMANDS = ["generate", "simulate", "export", "compare"]
+COMMANDS = ["generate", "simulate", "export", "crosscheck", "compare"]
 
 
 def build_parser() -> argparse.ArgumentParser:
