@@ -241,7 +241,7 @@ def plate_strip_crosscheck(dep_side: Callable[[Resolution], SideResult], youngs:
     ``dep_side(res)`` must run the plate case's free strip (uniform width, load uniform across
     it) at the DEP resolution ``res.ref_nodes`` and return the tip displacement ``(T, 2)``
     (longitudinal, vertical) of the free edge's midline and midline positions at ``t_save``.
-    ``clamp_x`` is where the DEP clamp acts (measure it: ``beam_reference.effective_clamp``
+    ``clamp_x`` is where the DEP clamp acts (measure it: ``references.effective_clamp``
     on a small-load static solve). ``plate`` overrides the strip's L, h, w, rho, gravity.
     """
     from groundtruth import fem

@@ -12,7 +12,7 @@ import pytest
 
 from benchmarks import crosscheck as cc
 from benchmarks.registry import CASES
-from groundtruth import beam_reference as br
+from groundtruth import references as br
 from groundtruth import fem
 from groundtruth.implicit import NewtonSettings
 
@@ -126,7 +126,7 @@ def test_cli_writes_csv_summary_figure_and_config(tmp_path, monkeypatch):
 
 def test_scikit_fem_is_imported_only_by_the_fem_module():
     code = ("import sys, benchmarks.cli, benchmarks.registry, benchmarks.crosscheck, "
-            "groundtruth.cases, groundtruth.beam_reference; "
+            "groundtruth.cases, groundtruth.references; "
             "assert 'skfem' not in sys.modules, 'skfem imported'; "
             "import groundtruth.fem; assert 'skfem' in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-from groundtruth import beam_reference as br
+from groundtruth import references as br
 from groundtruth import fem
 from groundtruth.implicit import NewtonSettings
 

@@ -8,7 +8,7 @@ import pytest
 from groundtruth import implicit
 from groundtruth.cases import RodCase
 from groundtruth.implicit import NewtonSettings
-from groundtruth.references import cantilever_uniform_tip, elastica, stokes_terminal_velocity
+from groundtruth.references import elastica, stokes_terminal_velocity, tip_deflection_uniform
 from groundtruth.system import MechanicalSystem
 
 # A rod cantilever: the rod's own section and mass, gravity only, nodes 0 and 1 clamped.
@@ -36,7 +36,7 @@ def test_static_cantilever_small_load_matches_beam_theory_and_converges():
     errors = []
     for n in (11, 21, 41):
         case, x, q, Le, Y = static_tip(n)
-        ref = cantilever_uniform_tip(q, Le, Y * case.inertia)
+        ref = tip_deflection_uniform(q, Le, Y * case.inertia)
         errors.append(abs(-x[-1, 1] / ref - 1))
     assert errors[1] < 0.01, errors                      # 21 nodes within 1 % (measured 0.13 %)
     rates = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))

@@ -122,3 +122,13 @@ def test_data_dir_env_override(tmp_path, monkeypatch):
     monkeypatch.setenv("MESHBENCH_DATA", str(tmp_path))
     assert store.data_dir() == tmp_path
     assert store.data_dir("elsewhere") == store.Path("elsewhere")
+
+
+def test_written_files_get_the_usual_permissions(tmp_path):
+    import os
+    import stat
+
+    store.save_json(tmp_path / "m.json", {"a": 1})
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE((tmp_path / "m.json").stat().st_mode) == 0o666 & ~mask
