@@ -12,8 +12,8 @@ import pytest
 
 from benchmarks import crosscheck as cc
 from benchmarks.registry import CASES
-from groundtruth import references as br
 from groundtruth import fem
+from groundtruth import references as br
 from groundtruth.implicit import NewtonSettings
 
 CASE = CASES["rod_cantilever"]

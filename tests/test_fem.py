@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-from groundtruth import references as br
 from groundtruth import fem
+from groundtruth import references as br
 from groundtruth.implicit import NewtonSettings
 
 R0, L, RHO = 1e-3, 0.1, 7000.0
