@@ -10,11 +10,14 @@ import sys
 
 from benchmarks.registry import RegistryError
 
-COMMANDS = ["generate", "simulate", "export"]
+COMMANDS = ["generate", "simulate", "export", "crosscheck", "compare"]
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="meshbench", description=__doc__.split("\n")[0])
+    parser.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                        help="Python file that registers cases/models (repeatable; also "
+                             "$MESHBENCH_PLUGINS and the 'meshbench.plugins' entry points)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f"benchmarks.commands.{name}").register(sub)
@@ -22,11 +25,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    from benchmarks import plugins
     from groundtruth.implicit import ConvergenceError
     from groundtruth.store import StoreError
 
     args = build_parser().parse_args(argv)
     try:
+        plugins.load_all(args.plugin)
         return int(args.func(args) or 0)
     except (ValueError, RegistryError, StoreError, ConvergenceError, FileNotFoundError) as e:
         print(f"meshbench {args.command}: error: {e}", file=sys.stderr)

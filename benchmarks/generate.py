@@ -39,7 +39,7 @@ def _simulate_one(case, youngs: float, out: str) -> str:
 def _load_partial(path: Path, youngs: float):
     try:
         with np.load(path) as z:
-            if np.isclose(float(z["youngs"]), youngs, rtol=0, atol=0):
+            if float(z["youngs"]) == youngs:
                 return z["pos"], z["vel"], z["t"]
     except (OSError, ValueError, KeyError, EOFError):
         pass
@@ -77,7 +77,12 @@ def generate(case, root=None, workers: int | None = None, force: bool = False,
             todo.append((s, i, y))
     bar = tqdm(total=len(jobs), initial=len(results), desc=f"generate {case.id}", unit="traj",
                disable=not progress, file=sys.stderr)
-    if todo:
+    if todo and workers == 1:  # in-process: easier to debug and to interrupt
+        for s, i, y in todo:
+            _simulate_one(case, y, str(partial / f"{s}_{i:04d}.npz"))
+            results[(s, i)] = _load_partial(partial / f"{s}_{i:04d}.npz", y)
+            bar.update(1)
+    elif todo:
         with ProcessPoolExecutor(max_workers=min(workers, len(todo))) as pool:
             futs = {pool.submit(_simulate_one, case, y, str(partial / f"{s}_{i:04d}.npz")):
                     (s, i, y) for s, i, y in todo}

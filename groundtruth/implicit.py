@@ -8,7 +8,10 @@ with tangent ``M/dt^2 + hess E(q) + C/dt``; then ``v_{n+1} = (q - q_n)/dt``. New
 ``q_n + dt v_n`` (``predictor="velocity"``) or ``q_n + dt v_n + dt^2 a_n`` with the last step's
 ``a_n = (v_n - v_{n-1}) / dt`` (``"acceleration"``: the same solution within the tolerance, in
 about one Newton iteration less per step on smooth dynamics). Newton stops when
-``max |f| < tol`` on the free dofs, ``tol = rtol * force_scale``. A step whose Newton fails is
+``max |f| < tol`` on the free dofs, ``tol = rtol * force_scale``, or when the Newton update
+has shrunk to roundoff (``max |dq| < 1e-13 max(1, |q|)``: stiff systems have a residual floor
+of about machine epsilon times the internal forces, which may exceed ``tol``). A step whose
+Newton fails is
 retried as two half steps, recursively, ``max_halvings`` times; then ``ConvergenceError`` says
 at which time, step and residual it failed.
 """
@@ -22,7 +25,7 @@ import numpy as np
 
 from groundtruth.system import MechanicalSystem
 
-
+_XTOL = 1e-13
 PREDICTORS = ("velocity", "acceleration")
 
 
@@ -101,12 +104,10 @@ def newton_step(system: MechanicalSystem, q_n: np.ndarray, v_n: np.ndarray, dt: 
             return q, (q - q_n) / dt, res
         if K is None:
             K = system.gradient_hessian(q, diag)[1]
-        q = q - K.solve(f)
-    g = system.gradient(q)
-    f = (m * ((q - q_n) / dt - v_n) / dt + g + c * (q - q_n) / dt - f_ext)[free]
-    res = float(np.max(np.abs(f)))
-    if res < tol:
-        return q, (q - q_n) / dt, res
+        dq = K.solve(f)
+        q = q - dq
+        if np.max(np.abs(dq)) < _XTOL * max(1.0, np.max(np.abs(q))):
+            return q, (q - q_n) / dt, res
     return None, None, res
 
 
@@ -220,5 +221,8 @@ def _static_newton(system, q, lam, tol, max_iter, free, zero):
             return None, res
         if res < tol:
             return q, res
-        q = q - K.solve(f)
+        dq = K.solve(f)
+        q = q - dq
+        if np.max(np.abs(dq)) < _XTOL * max(1.0, np.max(np.abs(q))):
+            return q, res
     return None, res

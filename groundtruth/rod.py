@@ -11,8 +11,14 @@ length of the two edges) so that the sum converges to the integral of 1/2 EI kap
     E_b = 1/2 EI |kappa_b - kappa_b0|^2 / l_k,
 
 with the natural curvature ``kappa_b0`` taken from the rest shape. For a planar rod this is
-the scalar formula of the paper with a sign; for an isotropic rod without twist it is the
-full 3-D bending energy. Stretching is ``groundtruth.stretch.spring`` with ``k = EA``.
+the signed scalar formula of the paper (REFERENCE §1, ``kappa . z``) plus a stiffness against
+leaving the plane; for a straight rest shape it is the isotropic 3-D bending energy.
+
+Limitation (no material frame, no twist): ``kappa_b0`` is a fixed vector in space, so the
+energy of a *naturally curved* rod is invariant under translations and rotations about the
+normal of its rest plane, not under arbitrary 3-D rotations. That is exact for the paper's
+rods (straight rest shape, motion in the x-y plane); curved rods moving in 3-D need DER's
+material frames. Stretching is ``groundtruth.stretch.spring`` with ``k = EA``.
 """
 
 from __future__ import annotations

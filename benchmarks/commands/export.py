@@ -5,6 +5,7 @@ model's rollout)."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -46,9 +47,21 @@ def run(args):
 
 
 def write_xdmf(out: Path, data: dict, index: int) -> None:
+    """XDMF + HDF5 pair. meshio's writer puts the .h5 in the working directory while its
+    reader (and ParaView) look beside the .xdmf, so write from the output's directory."""
+    out = Path(out).resolve()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cwd = os.getcwd()
+    try:
+        os.chdir(out.parent)
+        _write_series(out, data, index)
+    finally:
+        os.chdir(cwd)
+
+
+def _write_series(out: Path, data: dict, index: int) -> None:
     import meshio
 
-    out.parent.mkdir(parents=True, exist_ok=True)
     rest = data["rest_pos"]
     cells = [("triangle", data["cells"])] if data["cells"].size else [("line", data["edges"])]
     with meshio.xdmf.TimeSeriesWriter(str(out)) as writer:

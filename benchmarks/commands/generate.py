@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from benchmarks.registry import CASES, get_case
+from benchmarks import registry
 
 
 def register(sub):
@@ -23,17 +23,17 @@ def run(args):
     from benchmarks.generate import generate
 
     if args.list:
-        for cid, case in sorted(CASES.items()):
+        for cid, case in sorted(registry.CASES.items()):
             print(f"{cid:24s} {type(case).__name__}: {case.n_train} train + {case.n_test} test, "
                   f"{case.n_frames} frames")
         return 0
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
-    ids = sorted(CASES) if args.all else args.cases
+    ids = sorted(registry.CASES) if args.all else args.cases
     if not ids:
         raise ValueError("name at least one CASE or pass --all; registered: "
-                         + ", ".join(sorted(CASES)))
-    cases = [get_case(c) for c in ids]
+                         + ", ".join(sorted(registry.CASES)))
+    cases = [registry.get_case(c) for c in ids]
     for case in cases:
         rep = generate(case, args.data_dir, args.workers, args.force, not args.no_progress)
         if rep.reused:

@@ -1,0 +1,45 @@
+import numpy as np
+import pandas as pd
+import pytest
+
+from benchmarks.metrics import full_rollout_rmse, no_motion, rmse_at_step_table, rmse_per_step, tidy_metrics
+
+
+def test_rmse_definition_by_hand():
+    true = np.zeros((1, 2, 2, 3))
+    pred = true.copy()
+    pred[0, 1, 0] = [3.0, 4.0, 0.0]          # |err| = 5 at one of two nodes
+    r = rmse_per_step(pred, true)
+    assert r.shape == (1, 2) and r[0, 0] == 0.0
+    assert np.isclose(r[0, 1], np.sqrt(25 / 2))
+    assert np.isclose(full_rollout_rmse(pred, true)[0], np.sqrt(25 / 2))
+
+
+def test_oracle_scores_zero_and_no_motion_is_the_displacement():
+    rng = np.random.default_rng(0)
+    true = np.cumsum(rng.normal(size=(3, 5, 4, 3)), axis=1)
+    assert np.all(rmse_per_step(true.copy(), true) == 0)
+    nm = rmse_per_step(no_motion(true), true)
+    disp = np.sqrt(np.mean(np.sum((true - true[:, :1]) ** 2, -1), -1))
+    np.testing.assert_allclose(nm, disp)
+
+
+def test_shape_mismatch_is_an_error():
+    with pytest.raises(ValueError, match="shape"):
+        rmse_per_step(np.zeros((1, 2, 3, 3)), np.zeros((1, 2, 4, 3)))
+
+
+def test_table_mean_std_and_relative_increase():
+    t = np.arange(4) * 0.1
+    true = np.zeros((2, 4, 1, 3))
+    a = true.copy()
+    a[0, :, 0, 0], a[1, :, 0, 0] = 1.0, 3.0       # meshodenet: rmse 1 and 3 -> mean 2, std 1
+    b = 2 * a                                      # mgn: mean 4 -> +100 %
+    df = pd.concat([tidy_metrics(a, true, t, {"case": "c", "model": "meshodenet"}),
+                    tidy_metrics(b, true, t, {"case": "c", "model": "mgn"})])
+    tab = rmse_at_step_table(df, {"c": (1, 3)})
+    assert len(tab) == 4
+    r = tab[(tab.model == "mgn") & (tab.step == 3)].iloc[0]
+    assert r.rmse_mean == 4 and r.rmse_std == 2 and r.n_trajectories == 2
+    assert np.isclose(r.increase_vs_meshodenet_pct, 100.0)
+    assert np.allclose(tab[tab.model == "meshodenet"].increase_vs_meshodenet_pct, 0.0)
