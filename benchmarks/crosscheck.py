@@ -258,6 +258,83 @@ def plate_strip_crosscheck(dep_side: Callable[[Resolution], SideResult], youngs:
                                   **plate})
 
 
+# Where the DEP clamp acts (m), measured (tests/test_crosscheck.py) as for the rod: small-load
+# (alpha = q L^3 / EI = 0.1) static tip deflection of the plate case, fitted with
+# q (L - x_c)^4 / 8 EI (``references.effective_clamp``): x_c = -0.52, -0.26, -0.22 mm for
+# 24, 48 (default), 96 rows. The nominal clamp line is x = 0, midway between the two clamped
+# rows (docs/PLATE.md); the fit also absorbs the mesh's small bending-stiffness deficit
+# (EI_eff / EI = 0.9988 at 48 rows, worth -0.3 mm).
+DEP_CLAMP_X = -2.6e-4
+
+
+def dep_clamp_position(case, youngs: float | None = None, alpha: float = 0.1) -> float:
+    """Measure where the DEP clamp of a ``PlateCase`` acts (m): static tip (centre of the free
+    edge) deflection at the small load ``alpha = q L^3 / EI`` (the modulus is chosen to give
+    it), fitted with ``q (L - x_c)^4 / (8 EI)``."""
+    from groundtruth import references
+
+    y = case.line_load * case.length**3 / (alpha * case.bending_rigidity(1.0)) \
+        if youngs is None else float(youngs)
+    x0 = case.rest_positions()
+    tip = _dep_tip_node(x0)
+    q = case.solve_static(y)
+    return references.effective_clamp(-(q[tip, 2] - x0[tip, 2]), case.line_load,
+                                       case.bending_rigidity(y), case.length)
+
+
+def _dep_tip_node(x0: np.ndarray) -> int:
+    """The node at the centre of the free edge (largest x, y = 0)."""
+    i = int(np.argmin(np.hypot(x0[:, 0] - x0[:, 0].max(), x0[:, 1])))
+    if abs(x0[i, 1]) > 1e-12:
+        raise ValueError("the DEP mesh has no node at the centre of its free edge "
+                         "(n_width must be even)")
+    return i
+
+
+def dep_side(case, youngs: float) -> Callable[[Resolution], SideResult]:
+    """The DEP plate of ``case`` with ``ref_nodes`` row intervals along the free length
+    (``n_length``), time step ``case.dt * dt_scale``. Tip: the centre of the free edge,
+    displacement (x, z); centreline: the nodes at y = 0 from the clamp line on, (x, z)."""
+
+    def run(res: Resolution) -> SideResult:
+        c = dataclasses.replace(case, n_length=res.ref_nodes, dt=case.dt * res.dt_scale)
+        x0 = c.rest_positions()
+        tip = _dep_tip_node(x0)
+        t0 = time.perf_counter()
+        sim = c.simulate(youngs)
+        wall = time.perf_counter() - t0
+        pos = sim["pos"][..., [0, 2]]
+        line = np.flatnonzero((np.abs(x0[:, 1]) < 1e-12) & (x0[:, 0] >= DEP_CLAMP_X))
+        line = line[np.argsort(x0[line, 0])]
+        return SideResult(sim["t"], pos[:, tip] - pos[0, tip], x0[line, 0], pos[:, line], wall,
+                          sim["stats"])
+
+    return run
+
+
+# DEP rows (default, coarse, fine) of the plate_strip study, paired with 200, 100, 400 FEM
+# elements (``plate_study``).
+PLATE_ROWS = (48, 24, 96)
+
+
+def _plate_strip(youngs: float | None = None) -> CrossCheck:
+    """DEP ``plate_cantilever`` (Y = 5 MPa by default, its damping, dt and 1.5 s) vs the
+    plane-strain FEM strip clamped at ``DEP_CLAMP_X``, backward Euler with the same dt."""
+    from benchmarks.registry import get_case
+
+    case = get_case("plate_cantilever")
+    y = float(case.reference_youngs if youngs is None else youngs)
+    check = plate_strip_crosscheck(
+        dep_side(case, y), y, damping=case.damping_rate, t_save=case.t_save(), dt=case.dt,
+        resolutions=plate_study(*PLATE_ROWS), clamp_x=DEP_CLAMP_X, length=case.length,
+        thickness=case.thickness, width=case.width, density=case.density,
+        gravity=case.gravity)
+    check.config["dep_case"] = case.to_dict()
+    check.config["clamp"] = ("DEP: two clamped rows at x = -/+ clamp_gap/2 (slope held at "
+                             f"x = 0); measured x_c = {DEP_CLAMP_X} m; FEM: edge x = x_c")
+    return check
+
+
 def _rod_cantilever(youngs: float | None = None) -> CrossCheck:
     from benchmarks.registry import get_case
 
@@ -265,9 +342,9 @@ def _rod_cantilever(youngs: float | None = None) -> CrossCheck:
 
 
 # Cross-checks by case id: ``builder(youngs=None) -> CrossCheck`` (None: the default modulus).
-# Once DEP lands: CROSSCHECKS["plate_strip"] = lambda youngs=None: plate_strip_crosscheck(...).
 CROSSCHECKS: dict[str, Callable[..., CrossCheck]] = {
     "rod_cantilever": _rod_cantilever,
+    "plate_strip": _plate_strip,
 }
 
 
