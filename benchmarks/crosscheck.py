@@ -317,22 +317,28 @@ def dep_side(case, youngs: float) -> Callable[[Resolution], SideResult]:
 PLATE_ROWS = (48, 24, 96)
 
 
-def _plate_strip(youngs: float | None = None) -> CrossCheck:
-    """DEP ``plate_cantilever`` (Y = 5 MPa by default, its damping, dt and 1.5 s) vs the
-    plane-strain FEM strip clamped at ``DEP_CLAMP_X``, backward Euler with the same dt."""
-    from benchmarks.registry import get_case
-
-    case = get_case("plate_cantilever")
+def plate_crosscheck(case, youngs: float | None = None,
+                     resolutions: Sequence[Resolution] | None = None,
+                     clamp_x: float = DEP_CLAMP_X) -> CrossCheck:
+    """DEP plate of a ``PlateCase`` (default modulus: the middle of its training range, 5 MPa)
+    vs the plane-strain FEM strip clamped at ``clamp_x``, same damping, gravity, saved times
+    (``case.t_save()``) and backward Euler with the same dt."""
     y = float(case.reference_youngs if youngs is None else youngs)
+    res = plate_study(*PLATE_ROWS) if resolutions is None else tuple(resolutions)
     check = plate_strip_crosscheck(
         dep_side(case, y), y, damping=case.damping_rate, t_save=case.t_save(), dt=case.dt,
-        resolutions=plate_study(*PLATE_ROWS), clamp_x=DEP_CLAMP_X, length=case.length,
-        thickness=case.thickness, width=case.width, density=case.density,
-        gravity=case.gravity)
+        resolutions=res, clamp_x=clamp_x, length=case.length, thickness=case.thickness,
+        width=case.width, density=case.density, gravity=case.gravity)
     check.config["dep_case"] = case.to_dict()
     check.config["clamp"] = ("DEP: two clamped rows at x = -/+ clamp_gap/2 (slope held at "
-                             f"x = 0); measured x_c = {DEP_CLAMP_X} m; FEM: edge x = x_c")
+                             f"x = 0), measured x_c = {clamp_x} m; FEM: edge x = x_c clamped")
     return check
+
+
+def _plate_strip(youngs: float | None = None) -> CrossCheck:
+    from benchmarks.registry import get_case
+
+    return plate_crosscheck(get_case("plate_cantilever"), youngs)
 
 
 def _rod_cantilever(youngs: float | None = None) -> CrossCheck:
