@@ -12,8 +12,9 @@ centreline. The comparison reports
     max_shape_rel = max_shape_m / max over frames |tip_fem|.
 
 Cross-checks are registered by case id in ``CROSSCHECKS``. A check is a list of
-``Resolution`` rows (the first one is the default) and two callables, so the DEP side plugs in
-with ``plate_strip_crosscheck(dep_side)`` once the plate solver exists.
+``Resolution`` rows (the first one is the default) and two callables: ``der_side`` /
+``rod_fem_side`` for ``rod_cantilever``, ``dep_side`` / ``plate_strip_crosscheck``'s FEM strip for
+``plate_strip``.
 """
 
 from __future__ import annotations
@@ -219,7 +220,7 @@ def rod_crosscheck(case, youngs: float | None = None,
                                   "clamp": "DER: nodes 0..k fixed; FEM: edge x = x_k - dL/2"})
 
 
-# --- the plate strip: DEP vs FEM (the DEP side plugs in later) ------------------------------
+# --- the plate strip: DEP vs FEM ------------------------------------------------------------
 
 
 def plate_study(dep_default: int, dep_coarse: int, dep_fine: int) -> tuple:
@@ -236,7 +237,7 @@ def plate_strip_crosscheck(dep_side: Callable[[Resolution], SideResult], youngs:
                            damping: float, t_save: np.ndarray, dt: float,
                            resolutions: Sequence[Resolution], clamp_x: float = 0.0,
                            target_l2: float = 0.05, **plate) -> CrossCheck:
-    """The ``plate_strip`` cross-check once the DEP solver exists.
+    """The ``plate_strip`` cross-check (``plate_crosscheck`` builds it for a ``PlateCase``).
 
     ``dep_side(res)`` must run the plate case's free strip (uniform width, load uniform across
     it) at the DEP resolution ``res.ref_nodes`` and return the tip displacement ``(T, 2)``
