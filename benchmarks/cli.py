@@ -10,7 +10,7 @@ import sys
 
 from benchmarks.registry import RegistryError
 
-COMMANDS = ["generate", "simulate", "export"]
+COMMANDS = ["generate", "simulate", "export", "train", "rollout", "bench"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,7 +28,8 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, RegistryError, StoreError, ConvergenceError, FileNotFoundError) as e:
+    except (ValueError, RegistryError, StoreError, ConvergenceError, FileNotFoundError,
+            FloatingPointError) as e:
         print(f"meshbench {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
