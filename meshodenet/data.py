@@ -113,8 +113,9 @@ class Mesh:
         return cls(**arrays, case=d.get("case", ""), case_hash=d.get("case_hash", ""))
 
     def check_same(self, other: Mesh, what: str = "data") -> None:
-        """Raise ``DataError`` if ``other`` is not this mesh (e.g. a file from another case)."""
-        if other.signature() != self.signature():
+        """Raise ``DataError`` if ``other`` is not this mesh or comes from another case."""
+        other_case = bool(self.case and other.case and self.case != other.case)
+        if other_case or other.signature() != self.signature():
             raise DataError(
                 f"{what} is case {other.case or '?'!r} ({other.n_nodes} nodes, "
                 f"{len(other.edges)} edges) but the model was trained on case "

@@ -64,7 +64,7 @@ def meshodenet_presets(preset: str, kind: str) -> tuple[TrainConfig, MeshODENetC
         t, m = QUICK[kind]
         return TrainConfig(**{**_fields(base), **t}), MeshODENetConfig(**m)
     return (TrainConfig(**{**_fields(base), "epochs": 2, "lr": 1e-3, "lr_milestones": (),
-                           "batch_size": 4}),
+                           "batch_size": 4, "max_batches": 3}),
             MeshODENetConfig(hidden=16, mlp_hidden_layers=1, shooting=5))
 
 
