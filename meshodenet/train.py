@@ -28,8 +28,8 @@ from meshodenet.data import Trajectories
 from meshodenet.interface import TrajectoryModel
 from meshodenet.metrics import position_rmse
 
-HISTORY_FIELDS = ("epoch", "train_loss", "val_rmse", "best_val_rmse", "lr", "epoch_time_s",
-                  "wall_time_s")
+HISTORY_FIELDS = ("epoch", "train_loss", "val_rmse", "best_val_rmse", "lr", "skipped_steps",
+                  "epoch_time_s", "wall_time_s")
 
 
 @dataclass(frozen=True)
@@ -99,31 +99,41 @@ def make_optimizer(model: TrajectoryModel, cfg: TrainConfig):
 
 def train_epoch(model: TrajectoryModel, opt, data: Trajectories, cfg: TrainConfig,
                 generator: torch.Generator, max_batches: int | None = None,
-                bar: tqdm | None = None) -> float:
-    """One pass over shuffled training samples; returns the sample-weighted mean loss."""
+                bar: tqdm | None = None) -> tuple[float, int]:
+    """One pass over shuffled training samples: ``(mean loss, skipped steps)``.
+
+    A step whose loss or gradient is not finite (a rollout that diverged) is skipped rather
+    than applied; an epoch in which every step is skipped raises ``FloatingPointError``.
+    """
     model.train()
     n = model.n_training_samples(data)
     order = torch.randperm(n, generator=generator)
-    total, count = 0.0, 0
+    total, count, skipped, steps = 0.0, 0, 0, 0
+    max_norm = cfg.grad_clip if cfg.grad_clip > 0 else math.inf
     for k, s in enumerate(range(0, n, cfg.batch_size)):
         if max_batches is not None and k >= max_batches:
             break
+        steps += 1
         idx = order[s:s + cfg.batch_size]
-        loss = model.training_loss(data, idx, generator)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"training loss is {float(loss)} at batch {k}; lower the "
-                                     "learning rate or check the data (last.pt keeps the last "
-                                     "finished epoch)")
         opt.zero_grad(set_to_none=True)
-        loss.backward()
-        if cfg.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        loss = model.training_loss(data, idx, generator)
+        value = float(loss.detach())
+        if math.isfinite(value):
+            loss.backward()
+            norm = torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm)
+        if not math.isfinite(value) or not torch.isfinite(norm):
+            skipped += 1
+            continue
         opt.step()
-        total += float(loss.detach()) * len(idx)
+        total += value * len(idx)
         count += len(idx)
         if bar is not None:
-            bar.set_postfix_str(f"loss {float(loss.detach()):.4g}", refresh=False)
-    return total / max(count, 1)
+            bar.set_postfix_str(f"loss {value:.4g}", refresh=False)
+    if steps and skipped == steps:
+        raise FloatingPointError(f"every training step of this epoch diverged (loss {value}); "
+                                 "lower the learning rate or set a grad_clip (last.pt keeps "
+                                 "the last finished epoch)")
+    return total / max(count, 1), skipped
 
 
 def validate(model: TrajectoryModel, data: Trajectories, cfg: TrainConfig) -> float:
@@ -166,7 +176,8 @@ def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: Tra
             t0 = time.perf_counter()
             lr = opt.param_groups[0]["lr"]
             model.start_epoch(epoch)
-            loss = train_epoch(model, opt, train, cfg, gen, cfg.max_batches or None, bar=bar)
+            loss, skipped = train_epoch(model, opt, train, cfg, gen, cfg.max_batches or None,
+                                        bar=bar)
             sched.step()
             score = loss
             if len(val) and ((epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.epochs):
@@ -180,8 +191,8 @@ def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: Tra
             state["wall_time_s"] += dt
             row = {"epoch": epoch + 1, "train_loss": loss,
                    "val_rmse": score if len(val) else math.nan,
-                   "best_val_rmse": state["best_val_rmse"], "lr": lr, "epoch_time_s": dt,
-                   "wall_time_s": state["wall_time_s"]}
+                   "best_val_rmse": state["best_val_rmse"], "lr": lr, "skipped_steps": skipped,
+                   "epoch_time_s": dt, "wall_time_s": state["wall_time_s"]}
             state["history"].append(row)
             state["epoch"] = epoch + 1
             ck = {"model": model.state_dict(), "optimizer": opt.state_dict(),

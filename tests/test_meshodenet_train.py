@@ -26,10 +26,10 @@ def _overfit(arrays, max_seconds=60.0):
     opt, _ = make_optimizer(model, cfg)
     gen = torch.Generator().manual_seed(0)
     t0 = time.perf_counter()
-    first = train_epoch(model, opt, data, cfg, gen)
+    first = train_epoch(model, opt, data, cfg, gen)[0]
     loss = first
     while loss > first / 100 and time.perf_counter() - t0 < max_seconds:
-        loss = train_epoch(model, opt, data, cfg, gen)
+        loss = train_epoch(model, opt, data, cfg, gen)[0]
     return first, loss, time.perf_counter() - t0
 
 
@@ -87,6 +87,36 @@ def test_interrupt_and_resume_equals_uninterrupted(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "b" / "history.csv")))
     assert [int(r["epoch"]) for r in rows] == [1, 2, 3]
     assert (tmp_path / "b" / "best.pt").exists()
+
+
+def test_shooting_horizon_doubles_to_whole_rollouts():
+    arrays = rod_arrays(B=1, T=201)
+    cfg = MeshODENetConfig(hidden=8, shooting=10, shooting_windows=4, shooting_epochs=2)
+    model = MeshODENet(Mesh.from_arrays(arrays), cfg)
+    plan = []
+    for epoch in range(12):
+        model.start_epoch(epoch)
+        plan.append(model.horizon(200))
+    assert plan[::2] == [(10, 4), (20, 2), (40, 1), (80, 1), (160, 1), (200, 1)]
+    model.config = dataclasses.replace(cfg, shooting_epochs=0)
+    assert model.horizon(200) == (10, 4)
+    model.config = dataclasses.replace(cfg, shooting=0)
+    assert model.horizon(200) == (200, 1)
+
+
+def test_no_motion_scores_one():
+    """The loss is normalised by the no-motion prediction's."""
+    arrays = rod_arrays(B=2, T=21)
+    data = Trajectories.from_arrays(arrays, dtype=torch.float64)
+    model = MeshODENet(Mesh.from_arrays(arrays), MeshODENetConfig(hidden=8), data).double()
+    for layer in (model.gnn.decoder[-1],):  # zero acceleration: x(t) = x(0) + v(0) t
+        torch.nn.init.zeros_(layer.weight)
+        torch.nn.init.zeros_(layer.bias)
+    model.stats.acc.mean.zero_()
+    still = {**arrays, "vel": np.zeros_like(arrays["vel"])}  # v(0) = 0: nothing moves
+    data0 = Trajectories.from_arrays(still, dtype=torch.float64)
+    loss = model.training_loss(data0, torch.arange(2), torch.Generator().manual_seed(0))
+    assert abs(float(loss) - 1.0) < 1e-12
 
 
 def test_validation_split_is_fixed_and_disjoint():
