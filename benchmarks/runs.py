@@ -150,10 +150,17 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
     sessions_path = out / "sessions.json"
     sessions = json.loads(sessions_path.read_text()) if sessions_path.exists() else []
     session = _session_info(dev, t_start)
-    result = fit(model, train, val, train_cfg, out, resume=resume, progress=progress,
-                 on_epoch_end=on_epoch_end)
-    session.update(epochs_run=result.epochs_run, wall_time_s=round(time.time() - t_start, 2))
-    store.save_json(sessions_path, sessions + [session])
+    session["resumed"] = resume
+    try:
+        result = fit(model, train, val, train_cfg, out, resume=resume, progress=progress,
+                     on_epoch_end=on_epoch_end)
+        session["epochs_run"] = result.epochs_run
+    except BaseException as e:
+        session["ended_by"] = type(e).__name__
+        raise
+    finally:
+        session["wall_time_s"] = round(time.time() - t_start, 2)
+        store.save_json(sessions_path, sessions + [session])
     summary = {"run": str(out), "best_epoch": result.best_epoch,
                "best_val_rmse_m": result.best_val_rmse,
                "train_wall_time_s": round(result.wall_time_s, 2)}

@@ -44,13 +44,13 @@ class ExplicitRK:
 
     def step(self, f, t, h, z):
         ks = []
-        for c, a in zip(self.c, self.a):
+        for c, a in zip(self.c, self.a, strict=True):
             zs = z
-            for a_r, k in zip(a, ks):
+            for a_r, k in zip(a, ks, strict=True):
                 if a_r:
                     zs = zs + (h * a_r) * k
             ks.append(f(t + c * h, zs))
-        dz = sum(b * k for b, k in zip(self.b, ks) if b)
+        dz = sum(b * k for b, k in zip(self.b, ks, strict=True) if b)
         return z + h * dz
 
     def solve(self, f, z0, t, substeps: int = 1, **_):
@@ -123,7 +123,7 @@ def odesolve(f, z0: torch.Tensor, t: torch.Tensor, method: str = "rk4",
              grad_mode: str = "direct", substeps: int = 1, rtol: float = 1e-4,
              atol: float = 1e-7, checkpoint_every: int = 1, seminorm: bool = True,
              params=None) -> torch.Tensor:
-    """Integrate ``dz/dt = f(t, z)`` from ``z(t[0]) = z0``; return ``z`` at ``t``: ``(T, *z0.shape)``.
+    """Integrate ``dz/dt = f(t, z)`` from ``z(t[0]) = z0``; ``z`` at ``t``: ``(T, *z0.shape)``.
 
     ``f`` is called as ``f(t, z)``; for ``grad_mode="adjoint"`` or ``"checkpoint"`` it must be an
     ``nn.Module`` or ``params`` must list the tensors it differentiates (default: its

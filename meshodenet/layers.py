@@ -23,7 +23,7 @@ def mlp(d_in: int, d_hidden: int, d_out: int, n_hidden: int, activation: str = "
     act = get_activation(activation)
     dims = [d_in] + [d_hidden] * n_hidden
     layers: list[nn.Module] = []
-    for a, b in zip(dims[:-1], dims[1:]):
+    for a, b in zip(dims[:-1], dims[1:], strict=True):
         layers += [nn.Linear(a, b), act()]
     layers.append(nn.Linear(dims[-1], d_out))
     if layer_norm:

@@ -58,14 +58,15 @@ class MeshODENetConfig:
     - ``grad_mode``: ``direct``, ``checkpoint`` (segments of ``checkpoint_every`` intervals) or
       ``adjoint`` (``seminorm`` on or off).
     - ``shooting``: 0 trains on whole rollouts from the initial state (the paper). ``S > 0``
-      is multiple shooting: windows of ``S`` intervals starting at random frames, each
-      restarted from the ground-truth state at its first frame; ``shooting_windows`` windows
-      per trajectory and step. With ``shooting_epochs = E > 0`` the horizon doubles every
-      ``E`` epochs (the number of windows shrinking so that the frames per step stay about
-      ``S * shooting_windows``) until whole trajectories are rolled out from their initial
-      state, as in the paper: a curriculum that learns the local dynamics cheaply first and
-      the long-time stability that only long rollouts teach last (trained on 1-4 s windows
-      only, rollouts of the falling rod diverge after about 5 s). ``E = 0`` keeps ``S``.
+      is multiple shooting: each trajectory is cut into ``floor(n_intervals / S)`` windows of
+      ``S`` intervals (shifted together by a random offset each time they are drawn), each
+      restarted from the ground-truth state at its first frame; a training sample is then a
+      window. With ``shooting_epochs = E > 0`` the horizon doubles every ``E`` epochs until
+      whole trajectories are rolled out from their initial state, as in the paper: a
+      curriculum that learns the local dynamics cheaply first and the long-time stability
+      that only long rollouts teach last (trained on 1-4 s windows only, rollouts of the
+      falling rod diverge after about 5 s; switching from 1 s windows straight to 20 s
+      rollouts can overflow). ``E = 0`` keeps ``S`` throughout.
     """
 
     hidden: int = 128
@@ -80,13 +81,12 @@ class MeshODENetConfig:
     checkpoint_every: int = 1
     seminorm: bool = True
     shooting: int = 0
-    shooting_windows: int = 1
     shooting_epochs: int = 0
 
     def __post_init__(self):
         for name, lo in (("hidden", 1), ("layers", 0), ("mlp_hidden_layers", 0),
                          ("substeps", 1), ("checkpoint_every", 1), ("shooting", 0),
-                         ("shooting_windows", 1), ("shooting_epochs", 0)):
+                         ("shooting_epochs", 0)):
             _check_int(self, name, lo)
         _check_choice(self, "activation", ACTIVATIONS)
         _check_choice(self, "integrator", INTEGRATORS)
@@ -222,20 +222,18 @@ class MeshODENet(TrajectoryModel):
     def start_epoch(self, epoch: int) -> None:
         self.epoch = epoch
 
-    def horizon(self, n_intervals: int) -> tuple[int, int]:
-        """``(S, k)``: intervals per training window and windows per trajectory this epoch."""
+    def horizon(self, n_intervals: int) -> int:
+        """Intervals per training window in the current epoch."""
         c = self.config
         if c.shooting == 0:
-            return n_intervals, 1
+            return n_intervals
         level = self.epoch // c.shooting_epochs if c.shooting_epochs else 0
-        S = c.shooting * 2 ** min(level, 62)
-        if S >= n_intervals:
-            return n_intervals, 1
-        return S, max(1, round(c.shooting_windows * c.shooting / S))
+        return min(n_intervals, c.shooting * 2 ** min(level, 62))
 
     def n_training_samples(self, data: Trajectories) -> int:
-        """One sample per trajectory (its windows are drawn in ``training_loss``)."""
-        return len(data)
+        """Windows per epoch: ``floor(n_intervals / S)`` per trajectory (1 for whole rollouts)."""
+        n_int = data.n_frames - 1
+        return len(data) * (n_int // self.horizon(n_int))
 
     @torch.no_grad()
     def _loss_scale(self, train: Trajectories, S: int) -> float:
@@ -261,19 +259,20 @@ class MeshODENet(TrajectoryModel):
         scores 1 whatever the case's units or the shooting horizon, and the size of the
         gradients relative to Adam's coupled weight decay does not depend on them either.
         """
-        S, k = self.horizon(data.n_frames - 1)
+        n_int = data.n_frames - 1
+        S = self.horizon(n_int)
+        n_w = n_int // S
         samples = samples.to("cpu")
-        if S < data.n_frames - 1:
+        traj, start = samples // n_w, (samples % n_w) * S
+        if S < n_int:
             dt = data.t[1:] - data.t[:-1]
             if not torch.allclose(dt, dt[0].expand_as(dt), rtol=1e-3, atol=0):
                 raise ValueError("multiple shooting (shooting > 0) needs uniformly spaced "
                                  "frames; set shooting=0 for this data")
-            start = torch.randint(0, data.n_frames - S, (len(samples), k), generator=generator)
-        else:
-            start = torch.zeros(len(samples), 1, dtype=torch.long)
+            start = start + torch.randint(0, n_int - n_w * S + 1, (len(samples),),
+                                          generator=generator)
         dev = data.pos.device
-        traj = samples[:, None].expand_as(start).reshape(-1).to(dev)
-        start = start.reshape(-1).to(dev)
+        traj, start = traj.to(dev), start.to(dev)
         frames = start[:, None] + torch.arange(S + 1, device=dev)
         t = data.t[: S + 1] - data.t[0]
         pred, _ = self.rollout(data.pos[traj, start], data.vel[traj, start],

@@ -47,7 +47,7 @@ def test_gradcheck_parameters_float64(arrays):
     params = dict(model.named_parameters())
 
     def f(*values):
-        return torch.func.functional_call(model, dict(zip(names, values)), (z, ctx))
+        return torch.func.functional_call(model, dict(zip(names, values, strict=True)), (z, ctx))
 
     inputs = tuple(params[n].detach().clone().requires_grad_(True) for n in names)
     assert torch.autograd.gradcheck(f, inputs, eps=1e-7, atol=1e-6, rtol=1e-4)

@@ -90,18 +90,19 @@ def test_interrupt_and_resume_equals_uninterrupted(tmp_path):
 
 
 def test_shooting_horizon_doubles_to_whole_rollouts():
-    arrays = rod_arrays(B=1, T=201)
-    cfg = MeshODENetConfig(hidden=8, shooting=10, shooting_windows=4, shooting_epochs=2)
+    arrays = rod_arrays(B=3, T=201)
+    data = Trajectories.from_arrays(arrays)
+    cfg = MeshODENetConfig(hidden=8, shooting=10, shooting_epochs=2)
     model = MeshODENet(Mesh.from_arrays(arrays), cfg)
     plan = []
     for epoch in range(12):
         model.start_epoch(epoch)
-        plan.append(model.horizon(200))
-    assert plan[::2] == [(10, 4), (20, 2), (40, 1), (80, 1), (160, 1), (200, 1)]
+        plan.append((model.horizon(200), model.n_training_samples(data)))
+    assert plan[::2] == [(10, 60), (20, 30), (40, 15), (80, 6), (160, 3), (200, 3)]
     model.config = dataclasses.replace(cfg, shooting_epochs=0)
-    assert model.horizon(200) == (10, 4)
+    assert model.horizon(200) == 10
     model.config = dataclasses.replace(cfg, shooting=0)
-    assert model.horizon(200) == (200, 1)
+    assert model.horizon(200) == 200 and model.n_training_samples(data) == 3
 
 
 def test_no_motion_scores_one():

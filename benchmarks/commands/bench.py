@@ -33,7 +33,7 @@ def register(sub):
     t.add_argument("--batch-size", type=int, default=1, help="trajectories per optimizer step")
     t.add_argument("--max-batches", type=int, default=4,
                    help="optimizer steps to time, extrapolated to the epoch; 0 = full epoch")
-    t.add_argument("--threads", type=int, default=None)
+    t.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     t.add_argument("--device", default="auto")
     t.add_argument("--data-dir", default=None)
     t.add_argument("--json", default=None, help="also write the results to this JSON file")

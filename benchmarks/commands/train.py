@@ -23,7 +23,9 @@ def register(sub):
                    help="override a setting, e.g. --set model.hidden=64 --set train.lr=1e-3")
     p.add_argument("--data-dir", default=None)
     p.add_argument("--device", default="auto", help="auto (CUDA if present), cpu or cuda")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch CPU threads (default 1: these graphs are small, and on a shared "
+                        "machine a second thread costs more than it gives)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
 
@@ -33,10 +35,9 @@ def run(args):
 
     from benchmarks.runs import train_run
 
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ValueError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
+    if args.threads < 1:
+        raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    torch.set_num_threads(args.threads)
     summary = train_run(args.case, args.model, args.preset, args.out, resume=args.resume,
                         data_dir=args.data_dir, overrides=args.overrides, epochs=args.epochs,
                         device=args.device, progress=not args.no_progress)
