@@ -128,6 +128,7 @@ def train_epoch(model: TrajectoryModel, opt, data: Trajectories, cfg: TrainConfi
         total += value * len(idx)
         count += len(idx)
         if bar is not None:
+            bar.update(1)
             bar.set_postfix_str(f"loss {value:.4g}", refresh=False)
     if steps and skipped == steps:
         raise FloatingPointError(f"every training step of this epoch diverged (loss {value}); "
@@ -165,8 +166,8 @@ def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: Tra
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         sched.load_state_dict(ck["scheduler"])
-        gen.set_state(ck["generator"])
-        torch.set_rng_state(ck["torch_rng"])
+        gen.set_state(ck["generator"].cpu())  # RNG states are CPU byte tensors
+        torch.set_rng_state(ck["torch_rng"].cpu())
         state = {k: ck[k] for k in state}
     start = state["epoch"]
     bar = tqdm(total=cfg.epochs, initial=start, desc=f"train {model.name}", unit="epoch",
@@ -176,8 +177,13 @@ def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: Tra
             t0 = time.perf_counter()
             lr = opt.param_groups[0]["lr"]
             model.start_epoch(epoch)
-            loss, skipped = train_epoch(model, opt, train, cfg, gen, cfg.max_batches or None,
-                                        bar=bar)
+            n_steps = -(-model.n_training_samples(train) // cfg.batch_size)
+            if cfg.max_batches:
+                n_steps = min(n_steps, cfg.max_batches)
+            with tqdm(total=n_steps, desc=f"epoch {epoch + 1}", unit="step", leave=False,
+                      disable=not progress, file=sys.stderr, dynamic_ncols=True) as steps:
+                loss, skipped = train_epoch(model, opt, train, cfg, gen,
+                                            cfg.max_batches or None, bar=steps)
             sched.step()
             score = loss
             if len(val) and ((epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.epochs):
