@@ -162,45 +162,14 @@ def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: Tra
     state = {"epoch": 0, "best_val_rmse": math.inf, "best_epoch": -1, "history": [],
              "wall_time_s": 0.0}
     if resume:
-        ck = load_checkpoint(run_dir / "last.pt", model.device)
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        sched.load_state_dict(ck["scheduler"])
-        gen.set_state(ck["generator"].cpu())  # RNG states are CPU byte tensors
-        torch.set_rng_state(ck["torch_rng"].cpu())
-        state = {k: ck[k] for k in state}
+        state = _restore(run_dir / "last.pt", model, opt, sched, gen, list(state))
     start = state["epoch"]
     bar = tqdm(total=cfg.epochs, initial=start, desc=f"train {model.name}", unit="epoch",
                disable=not progress, file=sys.stderr, dynamic_ncols=True)
     try:
         for epoch in range(start, cfg.epochs):
-            t0 = time.perf_counter()
-            lr = opt.param_groups[0]["lr"]
-            model.start_epoch(epoch)
-            n_steps = -(-model.n_training_samples(train) // cfg.batch_size)
-            if cfg.max_batches:
-                n_steps = min(n_steps, cfg.max_batches)
-            with tqdm(total=n_steps, desc=f"epoch {epoch + 1}", unit="step", leave=False,
-                      disable=not progress, file=sys.stderr, dynamic_ncols=True) as steps:
-                loss, skipped = train_epoch(model, opt, train, cfg, gen,
-                                            cfg.max_batches or None, bar=steps)
-            sched.step()
-            score = loss
-            if len(val) and ((epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.epochs):
-                score = validate(model, val, cfg)
-            elif len(val):
-                score = math.nan
-            improved = not math.isnan(score) and score < state["best_val_rmse"]
-            if improved:
-                state["best_val_rmse"], state["best_epoch"] = score, epoch + 1
-            dt = time.perf_counter() - t0
-            state["wall_time_s"] += dt
-            row = {"epoch": epoch + 1, "train_loss": loss,
-                   "val_rmse": score if len(val) else math.nan,
-                   "best_val_rmse": state["best_val_rmse"], "lr": lr, "skipped_steps": skipped,
-                   "epoch_time_s": dt, "wall_time_s": state["wall_time_s"]}
-            state["history"].append(row)
-            state["epoch"] = epoch + 1
+            row, improved = _epoch(model, opt, sched, gen, train, val, cfg, epoch, state,
+                                   progress)
             ck = {"model": model.state_dict(), "optimizer": opt.state_dict(),
                   "scheduler": sched.state_dict(), "generator": gen.get_state(),
                   "torch_rng": torch.get_rng_state(), **state, "extra": extra_state or {},
@@ -210,13 +179,56 @@ def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: Tra
             save_checkpoint(run_dir / "last.pt", ck)
             write_history(run_dir / "history.csv", state["history"])
             bar.update(1)
-            bar.set_postfix_str(f"loss {loss:.4g} val {row['val_rmse']:.4g} m", refresh=True)
+            bar.set_postfix_str(f"loss {row['train_loss']:.4g} val {row['val_rmse']:.4g} m",
+                                refresh=True)
             if on_epoch_end is not None:
                 on_epoch_end(epoch + 1, row)
     finally:
         bar.close()
     return FitResult(state["best_epoch"], state["best_val_rmse"], state["epoch"] - start,
                      state["wall_time_s"], state["history"])
+
+
+def _restore(path: Path, model, opt, sched, gen, keys) -> dict:
+    """Load ``last.pt`` into the model, optimizer, scheduler and RNGs; return the run state."""
+    ck = load_checkpoint(path, model.device)
+    model.load_state_dict(ck["model"])
+    opt.load_state_dict(ck["optimizer"])
+    sched.load_state_dict(ck["scheduler"])
+    gen.set_state(ck["generator"].cpu())  # RNG states are CPU byte tensors
+    torch.set_rng_state(ck["torch_rng"].cpu())
+    return {k: ck[k] for k in keys}
+
+
+def _epoch(model, opt, sched, gen, train, val, cfg: TrainConfig, epoch: int, state: dict,
+           progress: bool) -> tuple[dict, bool]:
+    """Train and validate one epoch, update ``state``; ``(history row, improved)``."""
+    t0 = time.perf_counter()
+    lr = opt.param_groups[0]["lr"]
+    model.start_epoch(epoch)
+    n_steps = -(-model.n_training_samples(train) // cfg.batch_size)
+    if cfg.max_batches:
+        n_steps = min(n_steps, cfg.max_batches)
+    with tqdm(total=n_steps, desc=f"epoch {epoch + 1}", unit="step", leave=False,
+              disable=not progress, file=sys.stderr, dynamic_ncols=True) as steps:
+        loss, skipped = train_epoch(model, opt, train, cfg, gen, cfg.max_batches or None,
+                                    bar=steps)
+    sched.step()
+    score = loss  # selection by training loss only when there is no validation split
+    if len(val):
+        due = (epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.epochs
+        score = validate(model, val, cfg) if due else math.nan
+    improved = not math.isnan(score) and score < state["best_val_rmse"]
+    if improved:
+        state["best_val_rmse"], state["best_epoch"] = score, epoch + 1
+    dt = time.perf_counter() - t0
+    state["wall_time_s"] += dt
+    state["epoch"] = epoch + 1
+    row = {"epoch": epoch + 1, "train_loss": loss, "val_rmse": score if len(val) else math.nan,
+           "best_val_rmse": state["best_val_rmse"], "lr": lr, "skipped_steps": skipped,
+           "epoch_time_s": dt, "wall_time_s": state["wall_time_s"]}
+    state["history"].append(row)
+    return row, improved
 
 
 def _atomic_bytes(path: Path, data: bytes) -> None:

@@ -117,7 +117,7 @@ def test_no_motion_scores_one():
     still = {**arrays, "vel": np.zeros_like(arrays["vel"])}  # v(0) = 0: nothing moves
     data0 = Trajectories.from_arrays(still, dtype=torch.float64)
     loss = model.training_loss(data0, torch.arange(2), torch.Generator().manual_seed(0))
-    assert abs(float(loss) - 1.0) < 1e-12
+    assert abs(loss.item() - 1.0) < 1e-12
 
 
 def test_validation_split_is_fixed_and_disjoint():
