@@ -171,8 +171,10 @@ def _cli(*argv):
     return main([str(a) for a in argv])
 
 
-def test_train_rollout_export_resume_end_to_end(tiny_case, tmp_path, capsys):
+def test_train_rollout_export_resume_end_to_end(tiny_case, tmp_path, capsys, monkeypatch):
     from groundtruth import store
+
+    monkeypatch.chdir(tmp_path)  # meshio's XDMF writer puts its .h5 in the working directory
 
     case, root = tiny_case
     run = tmp_path / "run"
