@@ -10,7 +10,8 @@ import sys
 
 from benchmarks.registry import RegistryError
 
-COMMANDS = ["generate", "simulate", "export", "crosscheck", "compare"]
+COMMANDS = ["generate", "simulate", "export", "crosscheck", "compare", "train", "rollout",
+            "bench"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -33,7 +34,8 @@ def main(argv=None) -> int:
     try:
         plugins.load_all(args.plugin)
         return int(args.func(args) or 0)
-    except (ValueError, RegistryError, StoreError, ConvergenceError, FileNotFoundError) as e:
+    except (ValueError, RegistryError, StoreError, ConvergenceError, FileNotFoundError,
+            FloatingPointError) as e:
         print(f"meshbench {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -46,3 +46,16 @@ def register_case(case, overwrite: bool = False):
         raise ValueError(f"case id {case.id!r} is already registered; pass overwrite=True")
     CASES[case.id] = case
     return case
+
+
+# The torch side's registries, re-exported without importing torch until first used, so that
+# data commands (generate, simulate, export) run where torch is not installed.
+_TORCH_SIDE = {"MODELS": "meshodenet.registry", "INTEGRATORS": "meshodenet.integrators"}
+
+
+def __getattr__(name: str):
+    if name in _TORCH_SIDE:
+        import importlib
+
+        return getattr(importlib.import_module(_TORCH_SIDE[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,158 @@
+"""``meshbench bench train``: cost of one training epoch per gradient mode (prints, never asserts).
+
+Defaults are the paper's settings for ``rod_falling``: 71 trajectories, 200 intervals
+(201 frames), hidden 128, one message-passing layer, rk4 with the step equal to the sampling
+interval, one trajectory per optimizer step, whole-trajectory rollouts. Each gradient mode runs
+in a fresh process, so its peak resident memory (``getrusage`` max RSS; CUDA's
+``max_memory_allocated`` on a GPU) is its own. ``--max-batches K`` times K optimizer steps
+and extrapolates to the epoch (said so in the output); ``--max-batches 0`` runs the full
+epoch. When the case's data is not generated, synthetic trajectories of the same shapes are
+used (the cost of fixed-step modes does not depend on the values).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import sys
+
+MODES = ("direct", "checkpoint", "adjoint")
+
+
+def register(sub):
+    p = sub.add_parser("bench", help="measure training cost", description=__doc__)
+    bsub = p.add_subparsers(dest="what", required=True, metavar="WHAT")
+    t = bsub.add_parser("train", help="time and memory of one training epoch per gradient mode",
+                        description=__doc__)
+    t.add_argument("--case", default="rod_falling")
+    t.add_argument("--modes", default=",".join(MODES), help="comma-separated gradient modes")
+    t.add_argument("--trajectories", type=int, default=71)
+    t.add_argument("--frames", type=int, default=201, help="frames per trajectory (T)")
+    t.add_argument("--hidden", type=int, default=128)
+    t.add_argument("--integrator", default="rk4")
+    t.add_argument("--batch-size", type=int, default=1, help="trajectories per optimizer step")
+    t.add_argument("--max-batches", type=int, default=4,
+                   help="optimizer steps to time, extrapolated to the epoch; 0 = full epoch")
+    t.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    t.add_argument("--device", default="auto")
+    t.add_argument("--data-dir", default=None)
+    t.add_argument("--json", default=None, help="also write the results to this JSON file")
+    t.set_defaults(func=run)
+
+
+def run(args):
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    bad = [m for m in modes if m not in MODES]
+    if bad:
+        raise ValueError(f"--modes: unknown gradient modes {bad}; valid: {', '.join(MODES)}")
+    for name in ("trajectories", "hidden", "batch_size"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.frames < 2 or args.max_batches < 0:
+        raise ValueError("--frames must be >= 2 and --max-batches >= 0")
+    params = {k: getattr(args, k) for k in ("case", "trajectories", "frames", "hidden",
+                                            "integrator", "batch_size", "max_batches",
+                                            "threads", "device", "data_dir")}
+    ctx = mp.get_context("spawn")
+    results = []
+    print(f"meshbench bench train: {args.case}, {args.trajectories} trajectories x "
+          f"{args.frames} frames, hidden {args.hidden}, {args.integrator}, batch "
+          f"{args.batch_size} trajectories/step", flush=True)
+    for mode in modes:
+        with ctx.Pool(1) as pool:
+            res = pool.apply(_measure, (mode, params))
+        results.append(res)
+        _print_row(res)
+    print("(timings on a shared machine vary with its load; compare modes within one run)")
+    if args.json:
+        from groundtruth.store import save_json
+
+        save_json(args.json, {"params": params, "results": results})
+    return 0
+
+
+def _print_row(r: dict) -> None:
+    extra = f" (extrapolated from {r['batches_timed']} of {r['batches_per_epoch']} steps)" \
+        if r["batches_timed"] < r["batches_per_epoch"] else ""
+    gpu = f", GPU peak {r['cuda_peak_gb']:.2f} GB" if r.get("cuda_peak_gb") is not None else ""
+    print(f"  {r['mode']:10s} epoch {r['epoch_time_s']:8.1f} s{extra}; peak RSS "
+          f"{r['peak_rss_gb']:.2f} GB (process before the epoch {r['base_rss_gb']:.2f} GB){gpu};"
+          f" {r['evals_per_s']:.0f} vector-field evals/s "
+          f"({r['forward_evals_per_s']:.0f} rollout evals/s); data: {r['data']}", flush=True)
+
+
+def _bench_arrays(case, n: int, frames: int, data_dir):
+    """The case's training arrays cut to ``n`` trajectories and ``frames`` frames, or synthetic
+    ones of that shape when the data is not generated."""
+    import numpy as np
+
+    from groundtruth import store
+
+    try:
+        d = store.load_split(case, "train", data_dir)
+        if d["pos"].shape[0] >= n and d["pos"].shape[1] >= frames:
+            d = dict(d, pos=d["pos"][:n, :frames], vel=d["vel"][:n, :frames],
+                     youngs=d["youngs"][:n], t=d["t"][:frames])
+            return d, "generated"
+    except store.StoreError:
+        pass
+    t = np.arange(frames) * case.save_dt
+    rest = case.rest_positions()
+    rng = np.random.default_rng(0)
+    shape = (n, frames) + rest.shape
+    vel = 1e-3 * rng.standard_normal(shape).cumsum(1) / np.sqrt(frames)
+    pos = rest + np.cumsum(vel, 1) * case.save_dt
+    return store.trajectory_arrays(case, t, pos, vel, case.sample_youngs("train")[:n]
+                                   if case.n_train >= n else np.full(n, case.reference_youngs),
+                                   "train"), "synthetic (no generated data found)"
+
+
+def _measure(mode: str, p: dict) -> dict:
+    """Child process: one (possibly partial) epoch of MeshODENet training in ``mode``."""
+    import resource
+    import time
+
+    import torch
+
+    from benchmarks.registry import get_case
+    from benchmarks.runs import pick_device
+    from meshodenet.data import Mesh, Trajectories
+    from meshodenet.model import MeshODENet, MeshODENetConfig
+    from meshodenet.train import TrainConfig, make_optimizer, train_epoch
+
+    if p["threads"]:
+        torch.set_num_threads(p["threads"])
+    dev = pick_device(p["device"])
+    arrays, source = _bench_arrays(get_case(p["case"]), p["trajectories"], p["frames"],
+                                   p["data_dir"])
+    data = Trajectories.from_arrays(arrays, device=dev)
+    torch.manual_seed(0)
+    model = MeshODENet(Mesh.from_arrays(arrays), MeshODENetConfig(
+        hidden=p["hidden"], integrator=p["integrator"], grad_mode=mode), data).to(dev)
+    cfg = TrainConfig(batch_size=p["batch_size"], epochs=1, lr_milestones=())
+    opt, _ = make_optimizer(model, cfg)
+    n_batches = -(-model.n_training_samples(data) // cfg.batch_size)
+    timed = n_batches if p["max_batches"] == 0 else min(p["max_batches"], n_batches)
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    model.nfe = 0
+    t0 = time.perf_counter()
+    train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(0), max_batches=timed)
+    if dev.type == "cuda":
+        torch.cuda.synchronize()
+    wall = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    steps = p["frames"] - 1
+    evals_per_rollout = steps * {"euler": 1, "midpoint": 2, "rk4": 4}.get(p["integrator"], 0)
+    fwd = evals_per_rollout * timed  # evaluations of the forward rollouts themselves
+    kb = 1024**2  # ru_maxrss is in KiB on Linux
+    return {"mode": mode, "epoch_time_s": wall * n_batches / timed, "timed_s": wall,
+            "batches_timed": timed, "batches_per_epoch": n_batches,
+            "peak_rss_gb": peak / kb, "base_rss_gb": base / kb,
+            "cuda_peak_gb": torch.cuda.max_memory_allocated() / 1024**3
+            if dev.type == "cuda" else None,
+            "nfe": model.nfe, "evals_per_s": model.nfe / wall,
+            "forward_evals_per_s": (fwd or model.nfe) / wall,
+            "threads": torch.get_num_threads(), "device": str(dev), "data": source,
+            "pid": os.getpid(), "python": sys.version.split()[0]}

@@ -1,0 +1,240 @@
+"""Glue between the store and the torch side: training runs and rollouts of learned models.
+
+A run directory holds ``config.json`` (the resolved configuration: case, model, preset,
+training and model settings, seeds, the validation split), ``sessions.json`` (provenance of
+every invocation: versions, git SHA, device, threads, wall time), ``last.pt``, ``best.pt``,
+``history.csv`` and, once training ends, ``test_metrics.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import os
+import time
+import typing
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.registry import get_case
+from groundtruth import store
+
+CONFIG_FILE = "config.json"
+
+
+def pick_device(name: str = "auto"):
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"--device {name!r} but CUDA is not available; use --device cpu")
+    return torch.device(name)
+
+
+def _parse_value(text: str, current, annotation: str):
+    if isinstance(current, bool) or annotation == "bool":
+        if text.lower() in ("1", "true", "yes", "on"):
+            return True
+        if text.lower() in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(f"expected true/false, got {text!r}")
+    if isinstance(current, tuple) or annotation.startswith("tuple"):
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    if text.lower() == "none":
+        return None
+    if isinstance(current, int) or annotation == "int":
+        return int(text)
+    if isinstance(current, float) or "float" in annotation:
+        return float(text)
+    return text
+
+
+def apply_overrides(train_cfg, model_cfg, overrides: typing.Sequence[str]):
+    """Apply ``train.FIELD=VALUE`` / ``model.FIELD=VALUE`` strings with ``dataclasses.replace``."""
+    changes = {"train": {}, "model": {}}
+    targets = {"train": train_cfg, "model": model_cfg}
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        group, _, name = key.partition(".")
+        if not sep or group not in targets or not name:
+            raise ValueError(f"--set expects train.FIELD=VALUE or model.FIELD=VALUE, got {item!r}")
+        flds = {f.name: f for f in dataclasses.fields(targets[group])}
+        if name not in flds:
+            raise ValueError(f"--set {item!r}: {type(targets[group]).__name__} has no field "
+                             f"{name!r}; valid: {', '.join(sorted(flds))}")
+        try:
+            changes[group][name] = _parse_value(text, getattr(targets[group], name),
+                                                str(flds[name].type))
+        except ValueError as e:
+            raise ValueError(f"--set {item!r}: {e}") from None
+    return (dataclasses.replace(train_cfg, **changes["train"]),
+            dataclasses.replace(model_cfg, **changes["model"]))
+
+
+def _session_info(device, started: float) -> dict:
+    import torch
+
+    return {"started": datetime.datetime.fromtimestamp(started, datetime.timezone.utc)
+            .isoformat(timespec="seconds"), "versions": store.library_versions(),
+            "git_sha": store.git_sha(), "device": str(device),
+            "threads": torch.get_num_threads(), "cpu_count": os.cpu_count()}
+
+
+def _diff(a: dict, b: dict, prefix: str = "") -> list[str]:
+    out = []
+    for k in sorted(set(a) | set(b)):
+        va, vb = a.get(k), b.get(k)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += _diff(va, vb, f"{prefix}{k}.")
+        elif va != vb:
+            out.append(f"{prefix}{k}: {va!r} -> {vb!r}")
+    return out
+
+
+def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = False,
+              data_dir=None, overrides=(), epochs: int | None = None, device: str = "auto",
+              progress: bool = True, on_epoch_end=None) -> dict:
+    """Train ``model_id`` on ``case_id`` into ``out``; returns the summary it prints."""
+    import torch
+
+    from meshodenet.data import Mesh, Trajectories, split_indices
+    from meshodenet.registry import get_model_spec
+    from meshodenet.train import fit
+
+    t_start = time.time()
+    case = get_case(case_id)
+    spec = get_model_spec(model_id)
+    out = Path(out)
+    arrays = store.load_split(case, "train", data_dir)
+    mesh = Mesh.from_arrays(arrays, f"{case_id}/train.npz")
+    train_cfg, model_cfg = spec.presets(preset, mesh.kind)
+    train_cfg, model_cfg = apply_overrides(train_cfg, model_cfg, overrides)
+    if epochs is not None:
+        train_cfg = dataclasses.replace(train_cfg, epochs=epochs)
+    n = arrays["pos"].shape[0]
+    tr_idx, val_idx = split_indices(n, train_cfg.val_fraction, train_cfg.split_seed)
+    config = {
+        "case": case_id, "case_hash": str(arrays["case_hash"]), "model": model_id,
+        "preset": preset, "overrides": list(overrides),
+        "train": dataclasses.asdict(train_cfg), "model_config": dataclasses.asdict(model_cfg),
+        "seeds": {"seed": train_cfg.seed, "split_seed": train_cfg.split_seed},
+        "split": {"n_file": n, "train_idx": tr_idx.tolist(), "val_idx": val_idx.tolist()},
+    }
+    config = json.loads(json.dumps(config))  # tuples -> lists, as read back from disk
+    cfg_path = out / CONFIG_FILE
+    if resume:
+        if not (out / "last.pt").exists():
+            raise FileNotFoundError(f"--resume: {out / 'last.pt'} does not exist; run without "
+                                    "--resume to start this run")
+        old = json.loads(cfg_path.read_text())
+        diffs = [d for d in _diff(old, config) if not d.startswith(("train.epochs:",
+                                                                     "overrides:"))]
+        if diffs:
+            raise ValueError(f"--resume: the configuration differs from {cfg_path}: "
+                             + "; ".join(diffs) + ". Resume with the same settings or choose "
+                             "another --out")
+        config["overrides"] = old["overrides"]
+    elif (out / "last.pt").exists():
+        raise ValueError(f"{out} already holds a run; pass --resume to continue it or choose "
+                         "another --out")
+    dev = pick_device(device)
+    store.save_json(cfg_path, config)
+
+    full = Trajectories.from_arrays(arrays, device=dev)
+    train, val = full.subset(torch.as_tensor(tr_idx)), full.subset(torch.as_tensor(val_idx))
+    torch.manual_seed(train_cfg.seed)
+    model = spec.build(mesh, model_cfg, train).to(dev)
+    sessions_path = out / "sessions.json"
+    sessions = json.loads(sessions_path.read_text()) if sessions_path.exists() else []
+    session = _session_info(dev, t_start)
+    session["resumed"] = resume
+    try:
+        result = fit(model, train, val, train_cfg, out, resume=resume, progress=progress,
+                     on_epoch_end=on_epoch_end)
+        session["epochs_run"] = result.epochs_run
+    except BaseException as e:
+        session["ended_by"] = type(e).__name__
+        raise
+    finally:
+        session["wall_time_s"] = round(time.time() - t_start, 2)
+        store.save_json(sessions_path, sessions + [session])
+    summary = {"run": str(out), "best_epoch": result.best_epoch,
+               "best_val_rmse_m": result.best_val_rmse,
+               "train_wall_time_s": round(result.wall_time_s, 2)}
+    test_file = store.data_dir(data_dir) / case.id / "test.npz"
+    if test_file.exists() and (out / "best.pt").exists():
+        metrics = evaluate_run(out, "test", data_dir, device=device)
+        summary.update(test_rmse_m=metrics["rmse_m"],
+                       test_no_motion_rmse_m=metrics["no_motion_rmse_m"])
+        store.save_json(out / "test_metrics.json", metrics)
+    return summary
+
+
+def _load_run(run_dir: Path, checkpoint: str, device: str):
+    from meshodenet.registry import load_model
+
+    run_dir = Path(run_dir)
+    cfg_path = run_dir / CONFIG_FILE
+    if not cfg_path.exists():
+        raise FileNotFoundError(f"{cfg_path}: not a training run directory (meshbench train "
+                                "--out DIR creates one)")
+    if checkpoint not in ("best", "last"):
+        raise ValueError(f"--checkpoint must be 'best' or 'last', got {checkpoint!r}")
+    config = json.loads(cfg_path.read_text())
+    model, ck = load_model(run_dir / f"{checkpoint}.pt", pick_device(device))
+    return config, model, ck
+
+
+def rollout_arrays(run_dir, split: str = "test", data_dir=None, checkpoint: str = "best",
+                   device: str = "auto", data_file=None) -> tuple[dict, dict]:
+    """Roll the run's model out over a split (or ``data_file``); returns the store-format
+    arrays of the prediction and metrics (position RMSE and the no-motion baseline, m)."""
+    from meshodenet.data import Mesh, Trajectories
+    from meshodenet.metrics import no_motion, position_rmse, rmse_per_frame
+
+    config, model, ck = _load_run(Path(run_dir), checkpoint, device)
+    case = get_case(config["case"])
+    if data_file is not None:
+        arrays = store.load_npz(Path(data_file))
+        name = str(data_file)
+    else:
+        arrays = store.load_split(case, split, data_dir)
+        name = f"{case.id}/{split}.npz"
+    model.check_mesh(Mesh.from_arrays(arrays, name), name)
+    data = Trajectories.from_arrays(arrays, device=model.device, name=name)
+    t0 = time.perf_counter()
+    pos, vel = model.rollout_all(data, 16)
+    wall = time.perf_counter() - t0
+    true = data.pos
+    per_frame = rmse_per_frame(pos, true)
+    metrics = {"model": model.name, "case": case.id, "split": split if data_file is None
+               else str(data_file), "checkpoint": checkpoint, "epoch": ck["epoch"],
+               "rmse_definition": "sqrt(mean over trajectories, frames k>=1, nodes of "
+                                  "|x_pred - x_true|^2), m",
+               "rmse_m": position_rmse(pos, true),
+               "no_motion_rmse_m": position_rmse(no_motion(true), true),
+               "final_frame_rmse_m": float(per_frame[-1]), "rollout_wall_time_s": round(wall, 3),
+               "n_trajectories": len(data)}
+    out = dict(arrays)
+    out["pos"] = pos.detach().double().cpu().numpy()
+    out["vel"] = vel.detach().double().cpu().numpy()
+    out["model"] = np.array(model.name)
+    return out, metrics
+
+
+def evaluate_run(run_dir, split="test", data_dir=None, checkpoint="best", device="auto") -> dict:
+    return rollout_arrays(run_dir, split, data_dir, checkpoint, device)[1]
+
+
+def rollout_run(run_dir, out, split="test", data_dir=None, checkpoint="best",
+                device="auto", data_file=None) -> dict:
+    """Write the predicted trajectories of a split to ``out`` in the store's npz format."""
+    out = Path(out)
+    if out.suffix != ".npz":
+        raise ValueError(f"--out must end in .npz, got {str(out)!r}")
+    arrays, metrics = rollout_arrays(run_dir, split, data_dir, checkpoint, device, data_file)
+    store.save_npz(out, arrays)
+    return metrics

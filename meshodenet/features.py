@@ -1,0 +1,176 @@
+"""Node and edge features of the paper (section 2.2.1) and their normalisers.
+
+Node features, ``[static | dynamic]``:
+
+- line meshes (rods):      ``[Y]``            ``| [v (3), cos a, sin a, F_ext (3)]``
+- triangle meshes (plates): ``[Y, onehot(type) (2)]`` ``| [v (3), F_ext (3)]``
+
+with ``Y`` the trajectory's Young's modulus (Pa), ``v`` the velocity, ``F_ext = force - damping v``
+the external load and ``a`` the signed turning angle at a rod node: for the hinge
+``p -> i -> q``, ``cos a = e1.e2 / (|e1||e2|)`` and ``sin a = (e1 x e2).z / (|e1||e2|)`` with
+``e1 = x_i - x_p``, ``e2 = x_q - x_i`` (rods lie in the x-y plane, as in the paper). Nodes
+without a hinge (rod ends) get ``a = 0``. The paper's angle "formed by the two edges" is
+``pi - a``; after normalisation the two carry the same information.
+
+Edge features of the directed edge ``i -> j``: ``[l0, d0 (3)] | [l, d (3)]``, rest and current
+length and unit direction of ``x_j - x_i``.
+
+Normalisers hold per-feature mean and std computed from training trajectories only, as
+buffers, so they travel with the model's ``state_dict``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from meshodenet.data import N_NODE_TYPES, Trajectories
+from meshodenet.graph import GraphBatch, GraphTopology
+
+NODE_STATIC = {"line": 1, "triangle": 1 + N_NODE_TYPES}
+NODE_DYNAMIC = {"line": 8, "triangle": 6}
+EDGE_STATIC, EDGE_DYNAMIC = 4, 4
+
+
+def n_node_features(kind: str) -> int:
+    return NODE_STATIC[kind] + NODE_DYNAMIC[kind]
+
+
+def _length_direction(vec: torch.Tensor) -> torch.Tensor:
+    """``[|vec|, vec / |vec|]`` per row: ``(D, 3) -> (D, 4)``."""
+    length = vec.norm(dim=-1, keepdim=True)
+    return torch.cat([length, vec / length.clamp_min(1e-30)], dim=-1)
+
+
+def turning_angle(x: torch.Tensor, hinges: torch.Tensor) -> torch.Tensor:
+    """``[cos a, sin a]`` per node ``(M, 2)`` from positions ``x (M, 3)``; ``(1, 0)`` off hinges."""
+    p, i, q = hinges[:, 0], hinges[:, 1], hinges[:, 2]
+    e1, e2 = x[i] - x[p], x[q] - x[i]
+    r = (e1.norm(dim=-1) * e2.norm(dim=-1)).clamp_min(1e-30)
+    cos = (e1 * e2).sum(-1) / r
+    sin = (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) / r
+    base = torch.zeros(x.shape[0], 2, dtype=x.dtype, device=x.device)
+    base[:, 0] = 1.0
+    return base.index_copy(0, i, torch.stack([cos, sin], dim=-1))
+
+
+def static_node_features(batch: GraphBatch, youngs: torch.Tensor, kind: str) -> torch.Tensor:
+    """``(M, NODE_STATIC[kind])`` from ``youngs (n_graphs,)``."""
+    y = youngs.repeat_interleave(batch.n_per_graph)[:, None]
+    if kind == "line":
+        return y
+    onehot = nn.functional.one_hot(batch.node_type, N_NODE_TYPES).to(y.dtype)
+    return torch.cat([y, onehot], dim=-1)
+
+
+def dynamic_node_features(x: torch.Tensor, v: torch.Tensor, batch: GraphBatch,
+                          kind: str) -> torch.Tensor:
+    """``(M, NODE_DYNAMIC[kind])`` from positions and velocities ``(M, 3)``."""
+    f_ext = batch.force - batch.damping * v
+    if kind == "line":
+        return torch.cat([v, turning_angle(x, batch.hinges), f_ext], dim=-1)
+    return torch.cat([v, f_ext], dim=-1)
+
+
+def static_edge_features(batch: GraphBatch) -> torch.Tensor:
+    """``(D, 4)``: rest length and unit direction of every directed edge."""
+    return _length_direction(batch.rest_vec)
+
+
+def dynamic_edge_features(x: torch.Tensor, batch: GraphBatch) -> torch.Tensor:
+    """``(D, 4)``: current length and unit direction of ``x_receiver - x_sender``."""
+    return _length_direction(x[batch.receivers] - x[batch.senders])
+
+
+class Normalizer(nn.Module):
+    """``(x - mean) / std`` per feature, with statistics held as buffers.
+
+    A feature constant over the training data (std below ``1e-8 (1 + |mean|)``, e.g. the z
+    components of a planar rod) is not blown up by a tiny std: as an input it is scaled by
+    ``|mean|`` (or 1 when the mean is 0); as an output (``output=True``) its std is 0, so
+    ``inverse`` returns exactly the training mean and a planar case stays planar.
+    """
+
+    def __init__(self, size: int, output: bool = False):
+        super().__init__()
+        self.output = output
+        self.register_buffer("mean", torch.zeros(size, dtype=torch.float64))
+        self.register_buffer("std", torch.ones(size, dtype=torch.float64))
+
+    def set_stats(self, mean: torch.Tensor, std: torch.Tensor) -> None:
+        mean, std = mean.double(), std.double()
+        const = std <= 1e-8 * (1 + mean.abs())
+        if self.output:
+            std = torch.where(const, torch.zeros_like(std), std)
+        else:
+            fallback = torch.where(mean.abs() > 0, mean.abs(), torch.ones_like(mean))
+            std = torch.where(const, fallback, std)
+        self.mean.copy_(mean)
+        self.std.copy_(std)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.mean.to(x.dtype)) / self.std.to(x.dtype)
+
+    def inverse(self, y: torch.Tensor) -> torch.Tensor:
+        return y * self.std.to(y.dtype) + self.mean.to(y.dtype)
+
+    def part(self, start: int, stop: int):
+        """``(mean, std)`` of features ``start:stop``, for normalising a slice."""
+        return self.mean[start:stop], self.std[start:stop]
+
+
+class _Moments:
+    """Running sum and sum of squares per feature in float64."""
+
+    def __init__(self):
+        self.n, self.s, self.s2 = 0, 0.0, 0.0
+
+    def add(self, a: torch.Tensor) -> None:
+        a = a.detach().double().reshape(-1, a.shape[-1])
+        self.n += a.shape[0]
+        self.s = self.s + a.sum(0)
+        self.s2 = self.s2 + (a * a).sum(0)
+
+    def result(self):
+        mean = self.s / max(self.n, 1)
+        var = (self.s2 / max(self.n, 1) - mean * mean).clamp_min(0.0)
+        return mean, var.sqrt()
+
+
+class FeatureStats(nn.Module):
+    """Normalisers of node features, edge features and accelerations (targets of the
+    decoder, from finite differences of the stored velocities over free nodes).
+
+    Build it empty (``FeatureStats(kind)``) and either ``compute`` from training trajectories or
+    load a ``state_dict``.
+    """
+
+    def __init__(self, kind: str):
+        super().__init__()
+        self.kind = kind
+        self.node = Normalizer(n_node_features(kind))
+        self.edge = Normalizer(EDGE_STATIC + EDGE_DYNAMIC)
+        self.acc = Normalizer(3, output=True)
+
+    @torch.no_grad()
+    def compute(self, topology: GraphTopology, train: Trajectories) -> FeatureStats:
+        """Statistics over every frame of every trajectory in ``train`` (training split only)."""
+        if len(train) == 0:
+            raise ValueError("cannot compute normalisation statistics from 0 trajectories")
+        node, edge, acc = _Moments(), _Moments(), _Moments()
+        T = train.n_frames
+        batch = topology.batch(T, train.pos.device, train.pos.dtype)
+        free = batch.free.bool().reshape(T, -1)[0]
+        dt = (train.t[1:] - train.t[:-1])[:, None, None]
+        for b in range(len(train)):
+            x, v = train.pos[b].reshape(-1, 3), train.vel[b].reshape(-1, 3)
+            y = train.youngs[b].expand(T)
+            node.add(torch.cat([static_node_features(batch, y, self.kind),
+                                dynamic_node_features(x, v, batch, self.kind)], -1))
+            edge.add(torch.cat([static_edge_features(batch),
+                                dynamic_edge_features(x, batch)], -1))
+            a = (train.vel[b, 1:] - train.vel[b, :-1]) / dt
+            acc.add(a[:, free])
+        for norm, mom in ((self.node, node), (self.edge, edge), (self.acc, acc)):
+            norm.set_stats(*mom.result())
+        return self

@@ -1,0 +1,77 @@
+"""Registries of the torch side, keyed by the stable ids used in CSV columns.
+
+``MODELS`` maps a model id to its ``ModelSpec``; a user adds a model from their own file with
+``register_model``. ``INTEGRATORS`` is re-exported from ``meshodenet.integrators``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+from meshodenet.data import Mesh
+from meshodenet.integrators import INTEGRATORS
+from meshodenet.model import MeshODENet, MeshODENetConfig
+from meshodenet.presets import meshodenet_presets
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """A registered model: its ``TrajectoryModel`` class, its config dataclass, and
+    ``presets(preset, mesh_kind) -> (TrainConfig, config)``."""
+
+    model_cls: type
+    config_cls: type
+    presets: Callable
+    description: str = ""
+
+    def build(self, mesh: Mesh, config, train=None):
+        return self.model_cls(mesh, config, train)
+
+    def config_from_dict(self, d: dict):
+        """The config dataclass from its JSON form (lists back to tuples where declared)."""
+        names = {f.name for f in fields(self.config_cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"{self.config_cls.__name__} has no fields {unknown}; valid: "
+                             f"{', '.join(sorted(names))}")
+        return self.config_cls(**{k: tuple(v) if isinstance(v, list) else v
+                                  for k, v in d.items()})
+
+
+MODELS: dict = {
+    "meshodenet": ModelSpec(MeshODENet, MeshODENetConfig, meshodenet_presets,
+                            "graph neural ODE: GNN acceleration field integrated over the "
+                            "whole rollout (paper section 2.2)"),
+}
+
+__all__ = ["MODELS", "INTEGRATORS", "ModelSpec", "get_model_spec", "register_model",
+           "load_model"]
+
+
+def get_model_spec(name: str) -> ModelSpec:
+    try:
+        return MODELS[name]
+    except KeyError:
+        raise ValueError(f"unknown model id {name!r}; valid ids: "
+                         f"{', '.join(sorted(MODELS)) or '(none registered)'}") from None
+
+
+def register_model(name: str, spec: ModelSpec, overwrite: bool = False) -> ModelSpec:
+    if name in MODELS and not overwrite:
+        raise ValueError(f"model id {name!r} is already registered; pass overwrite=True")
+    MODELS[name] = spec
+    return spec
+
+
+def load_model(checkpoint: str | Path, device="cpu"):
+    """Rebuild the model saved in a checkpoint written by ``meshodenet.train.fit``."""
+    from meshodenet.train import load_checkpoint
+
+    ck = load_checkpoint(Path(checkpoint), device)
+    info = ck["model_info"]
+    spec = get_model_spec(info["name"])
+    model = spec.build(Mesh.from_dict(info["mesh"]), spec.config_from_dict(info["config"]))
+    model.load_state_dict(ck["model"])
+    return model.to(device), ck

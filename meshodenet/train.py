@@ -1,0 +1,275 @@
+"""The training engine shared by every ``TrajectoryModel``.
+
+``fit`` runs epochs of shuffled mini-batches of ``model.training_loss`` with Adam (coupled
+weight decay, as ``torch.optim.Adam``) and a step learning-rate schedule, validates by
+rolling out the validation trajectories from their initial states (position RMSE), keeps the
+best model by that validation RMSE (never by the test split), and after every epoch writes,
+atomically, ``last.pt`` (everything needed to continue exactly: model, optimizer, scheduler,
+RNG states, epoch, best score, history), ``best.pt`` when the validation RMSE improved, and
+``history.csv``. ``fit(..., resume=True)`` continues from ``last.pt``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from meshodenet.data import Trajectories
+from meshodenet.interface import TrajectoryModel
+from meshodenet.metrics import position_rmse
+
+HISTORY_FIELDS = ("epoch", "train_loss", "val_rmse", "best_val_rmse", "lr", "skipped_steps",
+                  "epoch_time_s", "wall_time_s")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings, identical in meaning for every model.
+
+    ``lr`` is multiplied by ``lr_gamma`` at each epoch in ``lr_milestones`` (paper: 1e-4, / 10
+    every 100 epochs for the rod, at 200 and 400 for the plate). ``batch_size`` counts
+    training samples (see ``TrajectoryModel.n_training_samples``) per optimizer step.
+    ``val_fraction`` of the training trajectories, drawn with ``split_seed``, form the
+    validation split; ``seed`` seeds the model's initialisation and the shuffling.
+    ``grad_clip`` (max global norm) 0 disables clipping. ``eval_batch_size`` trajectories are
+    rolled out together during validation. ``max_batches`` > 0 caps the optimizer steps per
+    epoch (a fresh random subset of samples each epoch); 0 uses every sample.
+    """
+
+    epochs: int = 400
+    lr: float = 1e-4
+    lr_milestones: tuple = (100, 200, 300)
+    lr_gamma: float = 0.1
+    weight_decay: float = 5e-4
+    batch_size: int = 1
+    val_fraction: float = 0.1
+    val_every: int = 1
+    split_seed: int = 0
+    seed: int = 0
+    grad_clip: float = 0.0
+    eval_batch_size: int = 16
+    max_batches: int = 0
+
+    def __post_init__(self):
+        for name, lo in (("epochs", 1), ("batch_size", 1), ("val_every", 1),
+                         ("eval_batch_size", 1), ("split_seed", 0), ("seed", 0),
+                         ("max_batches", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise ValueError(f"TrainConfig.{name} must be an int >= {lo}, got {v!r}")
+        for name, ok in (("lr", lambda v: v > 0), ("lr_gamma", lambda v: 0 < v <= 1),
+                         ("weight_decay", lambda v: v >= 0), ("grad_clip", lambda v: v >= 0),
+                         ("val_fraction", lambda v: 0 <= v < 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                    or not ok(v):
+                raise ValueError(f"TrainConfig.{name} has an invalid value {v!r}")
+        ms = tuple(self.lr_milestones)
+        if any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in ms) \
+                or list(ms) != sorted(set(ms)):
+            raise ValueError("TrainConfig.lr_milestones must be increasing positive epochs, "
+                             f"got {self.lr_milestones!r}")
+        object.__setattr__(self, "lr_milestones", ms)
+
+
+@dataclass
+class FitResult:
+    best_epoch: int
+    best_val_rmse: float
+    epochs_run: int
+    wall_time_s: float
+    history: list
+
+
+def make_optimizer(model: TrajectoryModel, cfg: TrainConfig):
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.MultiStepLR(opt, list(cfg.lr_milestones), cfg.lr_gamma)
+    return opt, sched
+
+
+def train_epoch(model: TrajectoryModel, opt, data: Trajectories, cfg: TrainConfig,
+                generator: torch.Generator, max_batches: int | None = None,
+                bar: tqdm | None = None) -> tuple[float, int]:
+    """One pass over shuffled training samples: ``(mean loss, skipped steps)``.
+
+    A step whose loss or gradient is not finite (a rollout that diverged) is skipped rather
+    than applied; an epoch in which every step is skipped raises ``FloatingPointError``.
+    """
+    model.train()
+    n = model.n_training_samples(data)
+    order = torch.randperm(n, generator=generator)
+    total, count, skipped, steps = 0.0, 0, 0, 0
+    max_norm = cfg.grad_clip if cfg.grad_clip > 0 else math.inf
+    for k, s in enumerate(range(0, n, cfg.batch_size)):
+        if max_batches is not None and k >= max_batches:
+            break
+        steps += 1
+        idx = order[s:s + cfg.batch_size]
+        opt.zero_grad(set_to_none=True)
+        loss = model.training_loss(data, idx, generator)
+        value = float(loss.detach())
+        if math.isfinite(value):
+            loss.backward()
+            norm = torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm)
+        if not math.isfinite(value) or not torch.isfinite(norm):
+            skipped += 1
+            continue
+        opt.step()
+        total += value * len(idx)
+        count += len(idx)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix_str(f"loss {value:.4g}", refresh=False)
+    if steps and skipped == steps:
+        raise FloatingPointError(f"every training step of this epoch diverged (loss {value}); "
+                                 "lower the learning rate or set a grad_clip (last.pt keeps "
+                                 "the last finished epoch)")
+    return total / max(count, 1), skipped
+
+
+def validate(model: TrajectoryModel, data: Trajectories, cfg: TrainConfig) -> float:
+    """Position RMSE (m) of rollouts from the initial states of ``data``; ``inf`` when a
+    rollout diverges (non-finite), so that such an epoch is never selected."""
+    model.eval()
+    pos, _ = model.rollout_all(data, cfg.eval_batch_size)
+    rmse = position_rmse(pos, data.pos)
+    return rmse if math.isfinite(rmse) else math.inf
+
+
+def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: TrainConfig,
+        run_dir, *, resume: bool = False, progress: bool = True, on_epoch_end=None,
+        extra_state: dict | None = None) -> FitResult:
+    """Train ``model`` into ``run_dir`` (see the module docstring).
+
+    ``val`` may be empty (then the best model is the one of lowest training loss; meant for
+    tiny tests only). ``on_epoch_end(epoch, row)`` is called after the epoch's files are
+    written. ``extra_state`` (JSON-able) is stored in every checkpoint, for the caller.
+    """
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    opt, sched = make_optimizer(model, cfg)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    state = {"epoch": 0, "best_val_rmse": math.inf, "best_epoch": -1, "history": [],
+             "wall_time_s": 0.0}
+    if resume:
+        state = _restore(run_dir / "last.pt", model, opt, sched, gen, list(state))
+    start = state["epoch"]
+    bar = tqdm(total=cfg.epochs, initial=start, desc=f"train {model.name}", unit="epoch",
+               disable=not progress, file=sys.stderr, dynamic_ncols=True)
+    try:
+        for epoch in range(start, cfg.epochs):
+            row, improved = _epoch(model, opt, sched, gen, train, val, cfg, epoch, state,
+                                   progress)
+            ck = {"model": model.state_dict(), "optimizer": opt.state_dict(),
+                  "scheduler": sched.state_dict(), "generator": gen.get_state(),
+                  "torch_rng": torch.get_rng_state(), **state, "extra": extra_state or {},
+                  "model_info": model_info(model)}
+            if improved:
+                save_checkpoint(run_dir / "best.pt", ck)
+            save_checkpoint(run_dir / "last.pt", ck)
+            write_history(run_dir / "history.csv", state["history"])
+            bar.update(1)
+            bar.set_postfix_str(f"loss {row['train_loss']:.4g} val {row['val_rmse']:.4g} m",
+                                refresh=True)
+            if on_epoch_end is not None:
+                on_epoch_end(epoch + 1, row)
+    finally:
+        bar.close()
+    return FitResult(state["best_epoch"], state["best_val_rmse"], state["epoch"] - start,
+                     state["wall_time_s"], state["history"])
+
+
+def _restore(path: Path, model, opt, sched, gen, keys) -> dict:
+    """Load ``last.pt`` into the model, optimizer, scheduler and RNGs; return the run state."""
+    ck = load_checkpoint(path, model.device)
+    model.load_state_dict(ck["model"])
+    opt.load_state_dict(ck["optimizer"])
+    sched.load_state_dict(ck["scheduler"])
+    gen.set_state(ck["generator"].cpu())  # RNG states are CPU byte tensors
+    torch.set_rng_state(ck["torch_rng"].cpu())
+    return {k: ck[k] for k in keys}
+
+
+def _epoch(model, opt, sched, gen, train, val, cfg: TrainConfig, epoch: int, state: dict,
+           progress: bool) -> tuple[dict, bool]:
+    """Train and validate one epoch, update ``state``; ``(history row, improved)``."""
+    t0 = time.perf_counter()
+    lr = opt.param_groups[0]["lr"]
+    model.start_epoch(epoch)
+    n_steps = -(-model.n_training_samples(train) // cfg.batch_size)
+    if cfg.max_batches:
+        n_steps = min(n_steps, cfg.max_batches)
+    with tqdm(total=n_steps, desc=f"epoch {epoch + 1}", unit="step", leave=False,
+              disable=not progress, file=sys.stderr, dynamic_ncols=True) as steps:
+        loss, skipped = train_epoch(model, opt, train, cfg, gen, cfg.max_batches or None,
+                                    bar=steps)
+    sched.step()
+    score = loss  # selection by training loss only when there is no validation split
+    if len(val):
+        due = (epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.epochs
+        score = validate(model, val, cfg) if due else math.nan
+    improved = not math.isnan(score) and score < state["best_val_rmse"]
+    if improved:
+        state["best_val_rmse"], state["best_epoch"] = score, epoch + 1
+    dt = time.perf_counter() - t0
+    state["wall_time_s"] += dt
+    state["epoch"] = epoch + 1
+    row = {"epoch": epoch + 1, "train_loss": loss, "val_rmse": score if len(val) else math.nan,
+           "best_val_rmse": state["best_val_rmse"], "lr": lr, "skipped_steps": skipped,
+           "epoch_time_s": dt, "wall_time_s": state["wall_time_s"]}
+    state["history"].append(row)
+    return row, improved
+
+
+def _atomic_bytes(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save_checkpoint(path: Path, obj: dict) -> None:
+    """``torch.save`` to a temporary file in the same directory, fsync, then rename."""
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    _atomic_bytes(Path(path), buf.getvalue())
+
+
+def load_checkpoint(path: Path, device="cpu") -> dict:
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no checkpoint here; train first (meshbench train)")
+    return torch.load(path, map_location=device, weights_only=False)
+
+
+def write_history(path: Path, rows: list) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=HISTORY_FIELDS, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k])
+                    for k in HISTORY_FIELDS})
+    _atomic_bytes(Path(path), buf.getvalue().encode())
+
+
+def model_info(model: TrajectoryModel) -> dict:
+    """What ``meshodenet.registry.load_model`` needs to rebuild ``model`` without the data."""
+    return {"name": model.name, "config": asdict(model.config), "mesh": model.mesh.to_dict()}

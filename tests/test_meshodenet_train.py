@@ -1,0 +1,245 @@
+"""The training engine and the train/rollout/bench commands: overfitting, exact resume,
+validation split, clear errors, and an end-to-end run on a tiny generated case."""
+
+import csv
+import dataclasses
+import json
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from meshodenet.data import Mesh, Trajectories, split_indices
+from meshodenet.model import MeshODENet, MeshODENetConfig
+from meshodenet.train import TrainConfig, fit, load_checkpoint, make_optimizer, train_epoch
+from tests.conftest import rod_arrays, strip_arrays
+
+torch.set_num_threads(1)  # tiny graphs: threads only add overhead
+
+
+def _overfit(arrays, max_seconds=60.0):
+    data = Trajectories.from_arrays(arrays)
+    torch.manual_seed(0)
+    model = MeshODENet(Mesh.from_arrays(arrays), MeshODENetConfig(hidden=32), data)
+    cfg = TrainConfig(lr=3e-3, weight_decay=0.0, lr_milestones=(), batch_size=1)
+    opt, _ = make_optimizer(model, cfg)
+    gen = torch.Generator().manual_seed(0)
+    t0 = time.perf_counter()
+    first = train_epoch(model, opt, data, cfg, gen)[0]
+    loss = first
+    while loss > first / 100 and time.perf_counter() - t0 < max_seconds:
+        loss = train_epoch(model, opt, data, cfg, gen)[0]
+    return first, loss, time.perf_counter() - t0
+
+
+def test_overfits_one_short_trajectory_in_under_a_minute():
+    first, last, seconds = _overfit(rod_arrays(B=1, T=11))
+    assert last < first / 100, (first, last, seconds)
+
+
+@pytest.mark.slow
+def test_overfits_one_short_plate_trajectory():
+    first, last, seconds = _overfit(strip_arrays(B=1, T=11), max_seconds=120)
+    assert last < first / 100, (first, last, seconds)
+
+
+def _fit_setup(arrays):
+    data = Trajectories.from_arrays(arrays)
+    tr, val = split_indices(len(data), 0.25, 0)
+    train, valid = data.subset(torch.as_tensor(tr)), data.subset(torch.as_tensor(val))
+    cfg = TrainConfig(epochs=3, lr=1e-3, lr_milestones=(2,), batch_size=2, val_fraction=0.25,
+                      seed=7)
+    mcfg = MeshODENetConfig(hidden=8, mlp_hidden_layers=1, shooting=2, shooting_epochs=2)
+    torch.manual_seed(cfg.seed)
+    model = MeshODENet(Mesh.from_arrays(arrays), mcfg, train)
+    return model, train, valid, cfg
+
+
+class _Interrupt(Exception):
+    pass
+
+
+def test_interrupt_and_resume_equals_uninterrupted(tmp_path):
+    arrays = rod_arrays(B=4, T=6)
+    model, train, valid, cfg = _fit_setup(arrays)
+    fit(model, train, valid, cfg, tmp_path / "a", progress=False)
+
+    model, train, valid, cfg = _fit_setup(arrays)
+
+    def stop(epoch, row):
+        if epoch == 1:
+            raise _Interrupt
+
+    with pytest.raises(_Interrupt):
+        fit(model, train, valid, cfg, tmp_path / "b", progress=False, on_epoch_end=stop)
+    model, train, valid, cfg = _fit_setup(arrays)  # a fresh process would rebuild everything
+    fit(model, train, valid, cfg, tmp_path / "b", resume=True, progress=False)
+
+    a, b = load_checkpoint(tmp_path / "a" / "last.pt"), load_checkpoint(tmp_path / "b" / "last.pt")
+    for k in a["model"]:
+        assert torch.equal(a["model"][k], b["model"][k]), k
+    assert torch.equal(a["generator"], b["generator"])
+    assert a["epoch"] == b["epoch"] == 3 and a["best_epoch"] == b["best_epoch"]
+    keep = ("epoch", "train_loss", "val_rmse", "best_val_rmse", "lr")
+    assert [{k: r[k] for k in keep} for r in a["history"]] == \
+        [{k: r[k] for k in keep} for r in b["history"]]
+    rows = list(csv.DictReader(open(tmp_path / "b" / "history.csv")))
+    assert [int(r["epoch"]) for r in rows] == [1, 2, 3]
+    assert (tmp_path / "b" / "best.pt").exists()
+
+
+def test_shooting_horizon_doubles_to_whole_rollouts():
+    arrays = rod_arrays(B=3, T=201)
+    data = Trajectories.from_arrays(arrays)
+    cfg = MeshODENetConfig(hidden=8, shooting=10, shooting_epochs=2)
+    model = MeshODENet(Mesh.from_arrays(arrays), cfg)
+    plan = []
+    for epoch in range(12):
+        model.start_epoch(epoch)
+        plan.append((model.horizon(200), model.n_training_samples(data)))
+    assert plan[::2] == [(10, 60), (20, 30), (40, 15), (80, 6), (160, 3), (200, 3)]
+    model.config = dataclasses.replace(cfg, shooting_epochs=0)
+    assert model.horizon(200) == 10
+    model.config = dataclasses.replace(cfg, shooting=0)
+    assert model.horizon(200) == 200 and model.n_training_samples(data) == 3
+
+
+def test_no_motion_scores_one():
+    """The loss is normalised by the no-motion prediction's."""
+    arrays = rod_arrays(B=2, T=21)
+    data = Trajectories.from_arrays(arrays, dtype=torch.float64)
+    model = MeshODENet(Mesh.from_arrays(arrays), MeshODENetConfig(hidden=8), data).double()
+    for layer in (model.gnn.decoder[-1],):  # zero acceleration: x(t) = x(0) + v(0) t
+        torch.nn.init.zeros_(layer.weight)
+        torch.nn.init.zeros_(layer.bias)
+    model.stats.acc.mean.zero_()
+    still = {**arrays, "vel": np.zeros_like(arrays["vel"])}  # v(0) = 0: nothing moves
+    data0 = Trajectories.from_arrays(still, dtype=torch.float64)
+    loss = model.training_loss(data0, torch.arange(2), torch.Generator().manual_seed(0))
+    assert abs(loss.item() - 1.0) < 1e-12
+
+
+def test_validation_split_is_fixed_and_disjoint():
+    tr, val = split_indices(71, 0.1, 0)
+    tr2, val2 = split_indices(71, 0.1, 0)
+    assert np.array_equal(val, val2) and len(val) == 7 and len(tr) == 64
+    assert not set(tr) & set(val) and sorted(set(tr) | set(val)) == list(range(71))
+    assert len(split_indices(2, 0.1, 0)[1]) == 1
+
+
+@pytest.mark.parametrize("field,value", [("epochs", 0), ("lr", -1.0), ("val_fraction", 1.0),
+                                         ("lr_milestones", (3, 2)), ("batch_size", 1.5)])
+def test_train_config_errors_name_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        TrainConfig(**{field: value})
+
+
+def test_presets_resolve_for_both_mesh_kinds():
+    from meshodenet.presets import PRESETS, meshodenet_presets
+
+    for kind in ("line", "triangle"):
+        for preset in PRESETS:
+            meshodenet_presets(preset, kind)
+    rod, plate = meshodenet_presets("paper", "line")[0], meshodenet_presets("paper", "triangle")[0]
+    assert (rod.epochs, rod.lr_milestones) == (400, (100, 200, 300))
+    assert (plate.epochs, plate.lr_milestones) == (600, (200, 400))
+    assert rod.lr == 1e-4 and rod.weight_decay == 5e-4
+    with pytest.raises(ValueError, match="paper, quick, smoke"):
+        meshodenet_presets("fast", "line")
+
+
+# --- end to end through the CLI on a tiny generated case ----------------------------------
+
+@pytest.fixture(scope="module")
+def tiny_case(tmp_path_factory):
+    from benchmarks.generate import generate
+    from benchmarks.registry import CASES, register_case
+    from groundtruth.cases import RodCase
+
+    case = dataclasses.replace(RodCase(), id="rod_tiny_test", n_train=4, n_test=2, t_end=0.5)
+    register_case(case, overwrite=True)
+    root = tmp_path_factory.mktemp("data")
+    generate(case, root, workers=1, progress=False)
+    yield case, root
+    CASES.pop(case.id, None)
+
+
+def _cli(*argv):
+    from benchmarks.cli import main
+
+    return main([str(a) for a in argv])
+
+
+def test_train_rollout_export_resume_end_to_end(tiny_case, tmp_path, capsys, monkeypatch):
+    from groundtruth import store
+
+    monkeypatch.chdir(tmp_path)  # meshio's XDMF writer puts its .h5 in the working directory
+
+    case, root = tiny_case
+    run = tmp_path / "run"
+    common = ("--data-dir", root, "--threads", 1, "--no-progress")
+    assert _cli("train", "--case", case.id, "--preset", "smoke", "--out", run, *common) == 0
+    for f in ("config.json", "sessions.json", "last.pt", "best.pt", "history.csv",
+              "test_metrics.json"):
+        assert (run / f).exists(), f
+    config = json.loads((run / "config.json").read_text())
+    assert config["model"] == "meshodenet" and config["seeds"]["seed"] == 0
+    assert sorted(config["split"]["train_idx"] + config["split"]["val_idx"]) == [0, 1, 2, 3]
+    assert "torch" in json.loads((run / "sessions.json").read_text())[0]["versions"]
+
+    # starting over in the same directory is refused; resuming with more epochs continues
+    assert _cli("train", "--case", case.id, "--preset", "smoke", "--out", run, *common) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert _cli("train", "--case", case.id, "--preset", "smoke", "--out", run, "--resume",
+                "--epochs", 3, *common) == 0
+    assert load_checkpoint(run / "last.pt")["epoch"] == 3
+    assert _cli("train", "--case", case.id, "--preset", "smoke", "--out", run, "--resume",
+                "--set", "model.hidden=8", *common) == 2
+    assert "model_config.hidden" in capsys.readouterr().err
+
+    out = tmp_path / "pred.npz"
+    assert _cli("rollout", "--run", run, "--split", "test", "--out", out,
+                "--data-dir", root, "--device", "cpu") == 0
+    printed = capsys.readouterr().out
+    metrics = json.loads(printed[:printed.rindex("}") + 1])
+    assert metrics["rmse_m"] > 0 and metrics["no_motion_rmse_m"] > 0
+    pred = store.load_npz(out)
+    truth = store.load_split(case, "test", root)
+    assert pred["pos"].shape == truth["pos"].shape and str(pred["model"]) == "meshodenet"
+    np.testing.assert_allclose(pred["pos"][:, 0], truth["pos"][:, 0], rtol=0, atol=1e-8)
+    assert _cli("export", "--file", out, "--out", tmp_path / "pred.xdmf") == 0
+
+
+def test_rollout_refuses_a_file_from_another_case(tiny_case, tmp_path, capsys):
+    from groundtruth import store
+
+    case, root = tiny_case
+    run = tmp_path / "run"
+    assert _cli("train", "--case", case.id, "--preset", "smoke", "--out", run,
+                "--data-dir", root, "--threads", 1, "--no-progress", "--epochs", 1) == 0
+    other = dataclasses.replace(case, id="rod_other_test", n_nodes=11)
+    f = tmp_path / "other.npz"
+    q = other.rest_positions()[None, None]
+    store.save_npz(f, store.trajectory_arrays(other, [0.0, 0.1], np.repeat(q, 2, 1),
+                                              np.zeros((1, 2) + q.shape[2:]), [1e9], "single"))
+    assert _cli("rollout", "--run", run, "--file", f, "--out", tmp_path / "x.npz") == 2
+    err = capsys.readouterr().err
+    assert "rod_other_test" in err and "trained on case 'rod_tiny_test'" in err
+
+
+def test_unknown_model_and_preset_are_clear(tiny_case, tmp_path, capsys):
+    case, root = tiny_case
+    assert _cli("train", "--case", case.id, "--model", "gnn", "--out", tmp_path / "r",
+                "--data-dir", root) == 2
+    assert "valid ids: meshodenet" in capsys.readouterr().err
+    assert _cli("train", "--case", case.id, "--preset", "fast", "--out", tmp_path / "r",
+                "--data-dir", root) == 2
+    assert "paper, quick, smoke" in capsys.readouterr().err
+
+
+def test_bench_train_prints_the_figures(capsys):
+    assert _cli("bench", "train", "--trajectories", 2, "--frames", 4, "--hidden", 8,
+                "--max-batches", 1, "--modes", "direct,checkpoint", "--threads", 1) == 0
+    out = capsys.readouterr().out
+    assert out.count("peak RSS") == 2 and "evals/s" in out and "epoch" in out
