@@ -12,6 +12,7 @@ from pathlib import Path
 
 from meshodenet.data import Mesh
 from meshodenet.integrators import INTEGRATORS
+from meshodenet.mgn import MeshGraphNet, MeshGraphNetConfig, mgn_presets
 from meshodenet.model import MeshODENet, MeshODENetConfig
 from meshodenet.presets import meshodenet_presets
 
@@ -44,6 +45,9 @@ MODELS: dict = {
     "meshodenet": ModelSpec(MeshODENet, MeshODENetConfig, meshodenet_presets,
                             "graph neural ODE: GNN acceleration field integrated over the "
                             "whole rollout (paper section 2.2)"),
+    "mgn": ModelSpec(MeshGraphNet, MeshGraphNetConfig, mgn_presets,
+                     "MeshGraphNet: autoregressive one-step GNN (Pfaff et al. 2021; the paper's "
+                     "baseline, section 3)"),
 }
 
 __all__ = ["MODELS", "INTEGRATORS", "ModelSpec", "get_model_spec", "register_model",
