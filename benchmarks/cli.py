@@ -11,7 +11,7 @@ import sys
 from benchmarks.registry import RegistryError
 
 COMMANDS = ["generate", "simulate", "export", "crosscheck", "compare", "train", "rollout",
-            "bench"]
+            "bench", "run"]
 
 
 def build_parser() -> argparse.ArgumentParser:

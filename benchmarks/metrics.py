@@ -20,6 +20,21 @@ PAPER_STEPS = {"rod_falling": (1, 30, 60, 90, 120, 150, 180),
                "plate_cantilever": (1, 25, 50, 150, 250, 350)}
 
 
+def table_steps(case_id: str, n_frames: int) -> tuple:
+    """The steps of a case's table: the paper's for its two cases, the case's own
+    ``table_steps`` attribute for a registered case that has one, else step 1 and five
+    evenly spaced steps up to the last frame."""
+    if case_id in PAPER_STEPS:
+        return PAPER_STEPS[case_id]
+    from benchmarks.registry import CASES
+
+    own = getattr(CASES.get(case_id), "table_steps", None)
+    if own:
+        return tuple(int(s) for s in own)
+    last = n_frames - 1
+    return tuple(sorted({1, *(int(round(last * k / 5)) for k in range(1, 6))} - {0}))
+
+
 def _check(pred: np.ndarray, true: np.ndarray):
     pred, true = np.asarray(pred, float), np.asarray(true, float)
     if pred.shape != true.shape or pred.ndim != 4 or pred.shape[-1] != 3:
@@ -77,9 +92,20 @@ def rmse_at_step_table(metrics: pd.DataFrame, steps: dict | None = None,
                                   "n_trajectories": g.size()}).reset_index())
     table = pd.concat(rows, ignore_index=True) if rows else pd.DataFrame(
         columns=keys + ["step", "rmse_mean", "rmse_std", "n_trajectories"])
-    other = [k for k in keys if k != "model"]
-    ref = table[table["model"] == reference_model].set_index(other + ["step"])["rmse_mean"]
-    idx = pd.MultiIndex.from_frame(table[other + ["step"]]) if len(other) + 1 > 1 else table["step"]
-    base = ref.reindex(idx).to_numpy()
-    table["increase_vs_" + reference_model + "_pct"] = 100.0 * (table["rmse_mean"].to_numpy() / base - 1.0)
+    # match each model to the reference on the keys that both have (not the integrator or the
+    # gradient mode, which only MeshODENet has); with several reference rows per match, prefer
+    # MeshODENet's defaults (rk4, checkpoint), then the first.
+    match = [k for k in keys if k not in ("model", "integrator", "grad_mode")] + ["step"]
+    ref = table[table["model"] == reference_model].copy()
+    if len(ref) and ref.duplicated(match).any():
+        pref = np.zeros(len(ref))
+        if "integrator" in ref:
+            pref -= (ref["integrator"] == "rk4").to_numpy()
+        if "grad_mode" in ref:
+            pref -= (ref["grad_mode"] == "checkpoint").to_numpy()
+        ref = ref.assign(_p=pref).sort_values("_p", kind="stable").drop_duplicates(match)
+    ref = ref[match + ["rmse_mean"]].rename(columns={"rmse_mean": "_ref"})
+    table = table.merge(ref, on=match, how="left")
+    table["increase_vs_" + reference_model + "_pct"] = 100.0 * (table["rmse_mean"] / table["_ref"] - 1.0)
+    table = table.drop(columns=["_ref"])
     return table.sort_values(keys + ["step"]).reset_index(drop=True)

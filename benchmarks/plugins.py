@@ -66,6 +66,11 @@ def load_entry_points() -> None:
         _loaded.add(key)
 
 
+def loaded_files() -> list[str]:
+    """The plugin files loaded so far in this process (to load again in worker processes)."""
+    return sorted(k for k in _loaded if not k.startswith("ep:"))
+
+
 def load_all(files=()) -> None:
     """Entry points, then ``$MESHBENCH_PLUGINS``, then ``files``."""
     load_entry_points()

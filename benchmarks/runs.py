@@ -94,20 +94,16 @@ def _diff(a: dict, b: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = False,
-              data_dir=None, overrides=(), epochs: int | None = None, device: str = "auto",
-              progress: bool = True, on_epoch_end=None) -> dict:
-    """Train ``model_id`` on ``case_id`` into ``out``; returns the summary it prints."""
-    import torch
-
-    from meshodenet.data import Mesh, Trajectories, split_indices
+def resolve_run(case_id: str, model_id: str, preset: str, *, data_dir=None, overrides=(),
+                epochs: int | None = None) -> dict:
+    """Everything a training run is determined by, resolved without training: the case's
+    training arrays, the model spec, the preset's configs after ``overrides``, the validation
+    split, and ``config`` (the JSON-ready dict written to ``config.json``)."""
+    from meshodenet.data import Mesh, split_indices
     from meshodenet.registry import get_model_spec
-    from meshodenet.train import fit
 
-    t_start = time.time()
     case = get_case(case_id)
     spec = get_model_spec(model_id)
-    out = Path(out)
     arrays = store.load_split(case, "train", data_dir)
     mesh = Mesh.from_arrays(arrays, f"{case_id}/train.npz")
     train_cfg, model_cfg = spec.presets(preset, mesh.kind)
@@ -124,6 +120,25 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
         "split": {"n_file": n, "train_idx": tr_idx.tolist(), "val_idx": val_idx.tolist()},
     }
     config = json.loads(json.dumps(config))  # tuples -> lists, as read back from disk
+    return {"case": case, "spec": spec, "arrays": arrays, "mesh": mesh, "train_cfg": train_cfg,
+            "model_cfg": model_cfg, "tr_idx": tr_idx, "val_idx": val_idx, "config": config}
+
+
+def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = False,
+              data_dir=None, overrides=(), epochs: int | None = None, device: str = "auto",
+              progress: bool = True, on_epoch_end=None, evaluate: bool = True) -> dict:
+    """Train ``model_id`` on ``case_id`` into ``out``; returns the summary it prints."""
+    import torch
+
+    from meshodenet.data import Trajectories
+    from meshodenet.train import fit
+
+    t_start = time.time()
+    out = Path(out)
+    r = resolve_run(case_id, model_id, preset, data_dir=data_dir, overrides=overrides,
+                    epochs=epochs)
+    case, spec, arrays, mesh, config = r["case"], r["spec"], r["arrays"], r["mesh"], r["config"]
+    train_cfg, model_cfg, tr_idx, val_idx = r["train_cfg"], r["model_cfg"], r["tr_idx"], r["val_idx"]
     cfg_path = out / CONFIG_FILE
     if resume:
         if not (out / "last.pt").exists():
@@ -165,7 +180,7 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
                "best_val_rmse_m": result.best_val_rmse,
                "train_wall_time_s": round(result.wall_time_s, 2)}
     test_file = store.data_dir(data_dir) / case.id / "test.npz"
-    if test_file.exists() and (out / "best.pt").exists():
+    if evaluate and test_file.exists() and (out / "best.pt").exists():
         metrics = evaluate_run(out, "test", data_dir, device=device)
         summary.update(test_rmse_m=metrics["rmse_m"],
                        test_no_motion_rmse_m=metrics["no_motion_rmse_m"])

@@ -87,23 +87,38 @@ class Normalizer(nn.Module):
 
     A feature constant over the training data (std below ``1e-8 (1 + |mean|)``, e.g. the z
     components of a planar rod) is not blown up by a tiny std: as an input it is scaled by
-    ``|mean|`` (or 1 when the mean is 0); as an output (``output=True``) its std is 0, so
-    ``inverse`` returns exactly the training mean and a planar case stays planar.
+    ``|mean|`` (or 1 when the mean is round-off, below 1e-12); as an output
+    (``output=True``) its std is 0, so ``inverse`` returns exactly the training mean and a
+    planar case stays planar.
+
+    ``vectors`` lists ``(start, stop)`` slices that are components of one vector (velocity,
+    force, direction). A component whose std is below ``VECTOR_FLOOR`` times the largest of
+    its vector's is floored there: the plate moves in x-z, and its y velocity (std 5e-6 m/s
+    against ~1 m/s, round-off of the solver) would otherwise be amplified 10^5 times, so a
+    rollout's tiny y drift drives the network far outside its training range.
     """
 
-    def __init__(self, size: int, output: bool = False):
+    VECTOR_FLOOR = 1e-3
+
+    def __init__(self, size: int, output: bool = False, vectors: tuple = ()):
         super().__init__()
         self.output = output
+        self.vectors = tuple(vectors)
         self.register_buffer("mean", torch.zeros(size, dtype=torch.float64))
         self.register_buffer("std", torch.ones(size, dtype=torch.float64))
 
     def set_stats(self, mean: torch.Tensor, std: torch.Tensor) -> None:
-        mean, std = mean.double(), std.double()
+        mean, std = mean.double(), std.double().clone()
+        const = std <= 1e-8 * (1 + mean.abs())
+        for a, b in self.vectors:
+            floor = self.VECTOR_FLOOR * std[a:b].max()
+            keep = const[a:b] if self.output else torch.zeros_like(const[a:b])
+            std[a:b] = torch.where(keep, std[a:b], torch.clamp(std[a:b], min=floor))
         const = std <= 1e-8 * (1 + mean.abs())
         if self.output:
             std = torch.where(const, torch.zeros_like(std), std)
         else:
-            fallback = torch.where(mean.abs() > 0, mean.abs(), torch.ones_like(mean))
+            fallback = torch.where(mean.abs() > 1e-12, mean.abs(), torch.ones_like(mean))
             std = torch.where(const, fallback, std)
         self.mean.copy_(mean)
         self.std.copy_(std)
@@ -148,9 +163,12 @@ class FeatureStats(nn.Module):
     def __init__(self, kind: str):
         super().__init__()
         self.kind = kind
-        self.node = Normalizer(n_node_features(kind))
-        self.edge = Normalizer(EDGE_STATIC + EDGE_DYNAMIC)
-        self.acc = Normalizer(3, output=True)
+        s = NODE_STATIC[kind]
+        node_vectors = ((s, s + 3), (s + 5, s + 8)) if kind == "line" else ((s, s + 3),
+                                                                            (s + 3, s + 6))
+        self.node = Normalizer(n_node_features(kind), vectors=node_vectors)
+        self.edge = Normalizer(EDGE_STATIC + EDGE_DYNAMIC, vectors=((1, 4), (5, 8)))
+        self.acc = Normalizer(3, output=True, vectors=((0, 3),))
 
     @torch.no_grad()
     def compute(self, topology: GraphTopology, train: Trajectories) -> FeatureStats:

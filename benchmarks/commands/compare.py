@@ -23,22 +23,27 @@ def register(sub):
 
 
 def run(args):
-    import pandas as pd
-
     from benchmarks.compare import compare, read_csv
 
     old, new = read_csv(args.baseline), read_csv(args.new)
     keys = [k.strip() for k in args.keys.split(",")] if args.keys else None
     res = compare(old, new, args.rtol, args.atol, keys, args.ignore,
                   not args.no_default_ignore, names=(args.baseline, args.new))
+    return report(res, args.rtol, args.atol)
+
+
+def report(res, rtol: float, atol: float) -> int:
+    """Print a comparison's outcome; 0 when within tolerance, 1 on a regression."""
+    import pandas as pd
+
     print(f"compared {res.n_rows} rows on keys {res.keys}; values {res.values}"
           + (f"; ignored {res.ignored}" if res.ignored else ""))
     if res.ok:
-        print(f"OK: every value within rtol={args.rtol:g}, atol={args.atol:g}")
+        print(f"OK: every value within rtol={rtol:g}, atol={atol:g}")
         return 0
     with pd.option_context("display.max_rows", 60, "display.width", 160,
                            "display.float_format", "{:.6g}".format):
-        print(f"REGRESSION: {len(res.moved)} values moved beyond rtol={args.rtol:g}, "
-              f"atol={args.atol:g}:")
+        print(f"REGRESSION: {len(res.moved)} values moved beyond rtol={rtol:g}, "
+              f"atol={atol:g}:")
         print(res.moved.to_string(index=False))
     return 1

@@ -1,0 +1,75 @@
+"""``meshbench run --suite S [--only PATTERN] [--seeds K]``: run a benchmark suite.
+
+Generates missing data, trains every run of the suite (finished runs whose configuration is
+unchanged are reused; interrupted ones resume), rolls the best checkpoints out on the test
+split and writes RESULTS/S/{runs,metrics,rmse_at_step}.csv, rmse_at_step.md and figures/.
+With --compare-with DIR, then compares RESULTS/S/rmse_at_step.csv against DIR/S/ (exit 1 on
+a regression). Suites: smoke, quick, paper, integrators (see --list)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+
+def register(sub):
+    p = sub.add_parser("run", help="run a benchmark suite and write its results tables",
+                       description=__doc__)
+    p.add_argument("--suite", default="quick", help="suite name (default quick)")
+    p.add_argument("--list", action="store_true", help="list the suites and their runs")
+    p.add_argument("--only", default=None, metavar="PATTERN",
+                   help="run only runs whose id matches (comma-separated substrings or globs, "
+                        "e.g. 'rod_falling' or '*-mgn-*')")
+    p.add_argument("--seeds", type=int, default=None, help="seeds per run (default: the suite's)")
+    p.add_argument("--results", default="results", help="results root (default results/)")
+    p.add_argument("--runs-dir", default="runs", help="training runs root (default runs/)")
+    p.add_argument("--data-dir", default=None)
+    p.add_argument("--jobs", type=int, default=1,
+                   help="runs trained at once, each in its own process (default 1)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads per run (default 1)")
+    p.add_argument("--device", default="auto", help="auto (CUDA if present), cpu or cuda")
+    p.add_argument("--no-figures", action="store_true")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--compare-with", default=None, metavar="DIR",
+                   help="afterwards compare rmse_at_step.csv with DIR/SUITE/rmse_at_step.csv")
+    p.add_argument("--rtol", type=float, default=None,
+                   help="relative tolerance of --compare-with (default: the suite's)")
+    p.set_defaults(func=run)
+
+
+def run(args):
+    from benchmarks.suites import SUITES, get_suite
+
+    if args.list:
+        for name, s in SUITES.items():
+            print(f"{name}: {s.description}")
+            for r in s.runs():
+                print(f"    {r.run_id}")
+        return 0
+    suite = get_suite(args.suite)
+    if args.compare_with is not None:
+        base = Path(args.compare_with) / suite.name / "rmse_at_step.csv"
+        if Path(args.results).resolve() == Path(args.compare_with).resolve():
+            raise ValueError("--compare-with names the --results directory itself; results "
+                             "would be compared with themselves")
+    from benchmarks.plugins import loaded_files
+    from benchmarks.runner import run_suite
+
+    res = run_suite(suite, results_dir=args.results, runs_dir=args.runs_dir,
+                    data_dir=args.data_dir, seeds=args.seeds, only=args.only, jobs=args.jobs,
+                    threads=args.threads, plugin_files=loaded_files(), device=args.device,
+                    progress=not args.no_progress, figures=not args.no_figures)
+    print((res["results"] / "rmse_at_step.md").read_text())
+    if args.compare_with is None:
+        return 0
+    if not base.exists():
+        print(f"meshbench run: no committed baseline {base}; nothing to compare", file=sys.stderr)
+        return 0
+    from benchmarks.commands.compare import report
+    from benchmarks.compare import compare, read_csv
+
+    rtol = suite.compare_rtol if args.rtol is None else args.rtol
+    new = res["results"] / "rmse_at_step.csv"
+    result = compare(read_csv(base), read_csv(new), rtol=rtol, atol=0.0,
+                     names=(str(base), str(new)))
+    return report(result, rtol, 0.0)

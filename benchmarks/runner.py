@@ -1,0 +1,318 @@
+"""``meshbench run``: execute a suite and write its results.
+
+For each run of the suite (see ``benchmarks/suites.py``) the runner generates the case's data
+if missing, trains into ``RUNS/RUN_ID`` (resuming an interrupted run, reusing a finished one
+whose configuration is unchanged, retraining one whose configuration changed), rolls the best
+checkpoint out on the test split and scores it. Then it writes under ``RESULTS/SUITE/``:
+
+- ``runs.csv``: one row per run (ids, seed, preset, parameters, wall times, peak memory,
+  device, threads, library versions, git SHA, timestamp);
+- ``metrics.csv``: tidy RMSE per run, test trajectory and step, plus each trajectory's
+  full-rollout RMSE (``metric`` column);
+- ``rmse_at_step.csv`` and ``.md``: the paper's table (mean and std over test trajectories at
+  the paper's steps, and the increase over MeshODENet in percent);
+- ``figures/``: RMSE vs step, rollout snapshots and loss curves per case.
+
+Every run executes in its own process (so its peak memory is its own); ``jobs`` of them at a
+time, each with ``threads`` torch threads. Nothing in ``RESULTS/SUITE`` is touched until every
+run has finished; each file is written atomically.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import multiprocessing
+import os
+import platform
+import shutil
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from benchmarks import metrics as M
+from benchmarks.registry import get_case
+from benchmarks.suites import NO_GRAD_MODE, NO_INTEGRATOR, RunSpec, Suite
+from groundtruth import store
+
+RECORD_FILE = "record.json"
+PRED_FILE = "test_rollout.npz"
+METRICS_FILE = "test_metrics.csv"
+ID_COLUMNS = ["run", "case", "model", "preset", "integrator", "grad_mode", "seed"]
+
+CSV_HEADERS = {
+    "metrics": (
+        "metrics.csv: tidy position errors of every run on the test split.",
+        "rmse (m): for one trajectory, metric=rmse_at_step: sqrt(mean over ALL nodes of "
+        "|x_pred - x_true|^2) at saved frame `step` (time `time`, s; frame 0 is the initial "
+        "state); metric=full_rollout_rmse: the same mean over nodes and frames 1..T-1 (step = "
+        "T-1, the horizon). Clamped nodes are included."),
+    "rmse_at_step": (
+        "rmse_at_step.csv: the paper's table (Tables 1 and 2 of MeshODENet).",
+        "rmse_mean / rmse_std (m): mean and population std over the test trajectories of the "
+        "per-trajectory RMSE at `step` (sqrt of the mean over all nodes of the squared "
+        "Euclidean position error); increase_vs_meshodenet_pct: 100 (mean / MeshODENet's mean "
+        "- 1) for the same case, integrator-free keys and step."),
+    "runs": (
+        "runs.csv: one row per training run (train_wall_time_s sums every session of the run; "
+        "peak_rss_mb is the run process's peak resident memory).",),
+}
+
+
+def _header(kind: str) -> str:
+    return "".join(f"# {line}\n" for line in CSV_HEADERS[kind])
+
+
+def write_csv(path: Path, df: pd.DataFrame, kind: str) -> None:
+    text = _header(kind) + df.to_csv(index=False, float_format="%.6g", lineterminator="\n")
+    store.atomic_write(Path(path), lambda f: f.write(text), mode="w")
+
+
+def _log(msg: str) -> None:
+    print(f"[meshbench run] {msg}", file=sys.stderr, flush=True)
+
+
+# --- one run (executes in a worker process) -------------------------------------------------
+def _integrator_ids(config: dict) -> tuple[str, str]:
+    mc = config["model_config"]
+    return mc.get("integrator", NO_INTEGRATOR), mc.get("grad_mode", NO_GRAD_MODE)
+
+
+def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
+                plugin_files: tuple, progress: bool, device: str = "auto") -> dict:
+    """Train (or resume, or reuse) ``spec`` in ``run_dir``, roll it out on the test split and
+    score it. Returns the run's record (also written to ``run_dir/record.json``)."""
+    import resource
+
+    import torch
+
+    from benchmarks import plugins
+    from benchmarks.runs import resolve_run, rollout_arrays, train_run
+
+    plugins.load_all(plugin_files)
+    torch.set_num_threads(threads)
+    run_dir = Path(run_dir)
+    overrides = spec.all_overrides()
+    config = resolve_run(spec.case, spec.model, spec.preset, data_dir=data_dir,
+                         overrides=overrides)["config"]
+    rec_path = run_dir / RECORD_FILE
+    if rec_path.exists():
+        rec = json.loads(rec_path.read_text())
+        if rec.get("config") == config and (run_dir / METRICS_FILE).exists():
+            rec["reused"] = True
+            return rec
+    resume = False
+    if (run_dir / "config.json").exists():
+        old = json.loads((run_dir / "config.json").read_text())
+        if old == config and (run_dir / "last.pt").exists():
+            resume = True
+        else:
+            _log(f"{spec.run_id}: configuration changed since the stored run; retraining")
+            shutil.rmtree(run_dir)
+    rec_path.unlink(missing_ok=True)
+    t0 = time.time()
+    summary = train_run(spec.case, spec.model, spec.preset, run_dir, resume=resume,
+                        data_dir=data_dir, overrides=overrides, device=device,
+                        progress=progress, evaluate=False)
+    sessions = json.loads((run_dir / "sessions.json").read_text())
+    pred, m = rollout_arrays(run_dir, "test", data_dir, "best", device)
+    store.save_npz(run_dir / PRED_FILE, pred)
+    true = store.load_split(get_case(spec.case), "test", data_dir)
+    integ, grad = _integrator_ids(config)
+    ids = {"run": spec.run_id, "case": spec.case, "model": spec.model, "preset": spec.preset,
+           "integrator": integ, "grad_mode": grad, "seed": spec.seed}
+    df = per_run_metrics(pred["pos"], true["pos"], true["t"], ids)
+    text = df.to_csv(index=False, float_format="%.9g", lineterminator="\n")
+    store.atomic_write(run_dir / METRICS_FILE, lambda f: f.write(text), mode="w")
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    tc, mc = config["train"], config["model_config"]
+    rec = {
+        **ids, "config": config, "reused": False,
+        "hidden": mc.get("hidden"), "layers": mc.get("layers"), "epochs": tc["epochs"],
+        "best_epoch": summary["best_epoch"], "lr": tc["lr"], "batch_size": tc["batch_size"],
+        "max_batches": tc["max_batches"], "n_parameters": _n_params(run_dir),
+        "best_val_rmse_m": summary["best_val_rmse_m"],
+        "test_rmse_m": m["rmse_m"], "test_no_motion_rmse_m": m["no_motion_rmse_m"],
+        "train_wall_time_s": round(sum(s.get("wall_time_s", 0.0) for s in sessions), 2),
+        "rollout_wall_time_s": m["rollout_wall_time_s"],
+        "run_wall_time_s": round(time.time() - t0, 2), "resumed": resume,
+        "peak_rss_mb": round(peak_mb, 1), "device": sessions[-1]["device"],
+        "threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
+        "machine": platform.machine(), "git_sha": store.git_sha(),
+        "versions": store.library_versions(),
+        "timestamp": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
+    store.save_json(rec_path, rec)
+    return rec
+
+
+def _n_params(run_dir: Path) -> int:
+    from meshodenet.train import load_checkpoint
+
+    ck = load_checkpoint(run_dir / "best.pt")
+    return int(sum(v.numel() for v in ck["model"].values()))
+
+
+def per_run_metrics(pred, true, t, ids: dict) -> pd.DataFrame:
+    """Tidy RMSE rows of one run: every (trajectory, step), then each trajectory's
+    full-rollout RMSE (``metric`` = ``full_rollout_rmse``, ``step`` = the horizon)."""
+    steps = M.tidy_metrics(pred, true, t, ids)
+    steps.insert(len(ids), "metric", "rmse_at_step")
+    full = M.full_rollout_rmse(pred, true)
+    T = np.asarray(pred).shape[1]
+    rows = pd.DataFrame({**{k: v for k, v in ids.items()}, "metric": "full_rollout_rmse",
+                         "trajectory": np.arange(len(full)), "step": T - 1,
+                         "time": float(np.asarray(t)[-1]), "rmse": full})
+    return pd.concat([steps, rows], ignore_index=True)
+
+
+# --- the suite ------------------------------------------------------------------------------
+def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=None,
+              seeds: int | None = None, only: str | None = None, jobs: int = 1,
+              threads: int = 1, plugin_files=(), progress: bool = True, device: str = "auto",
+              figures: bool = True) -> dict:
+    """Run ``suite`` and write ``results_dir/SUITE/``; returns paths and the records."""
+    from benchmarks.generate import generate
+
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ValueError(f"--jobs must be an int >= 1, got {jobs!r}")
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ValueError(f"--threads must be an int >= 1, got {threads!r}")
+    runs = suite.runs(seeds, only)
+    for r in runs:  # fail before any work on an unknown id
+        get_case(r.case)
+        from meshodenet.registry import get_model_spec
+
+        get_model_spec(r.model)
+    out = Path(results_dir) / suite.name
+    runs_dir = Path(runs_dir)
+    t0 = time.time()
+    _log(f"suite {suite.name!r}: {len(runs)} run(s): {', '.join(r.run_id for r in runs)}")
+    for case_id in dict.fromkeys(r.case for r in runs):
+        rep = generate(get_case(case_id), data_dir, progress=progress)
+        _log(f"data {case_id}: " + ("up to date" if rep.reused else
+                                    f"generated in {rep.wall_time_s:.0f} s"))
+
+    records: dict = {}
+    failures: dict = {}
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=min(jobs, len(runs)), mp_context=ctx,
+                             max_tasks_per_child=1) as pool:
+        futs = {pool.submit(execute_run, r, str(runs_dir / r.run_id),
+                            None if data_dir is None else str(data_dir), threads,
+                            tuple(str(p) for p in plugin_files), progress and jobs == 1,
+                            device): r for r in runs}
+        for i, fut in enumerate(as_completed(futs), 1):
+            r = futs[fut]
+            try:
+                rec = fut.result()
+            except (ValueError, FloatingPointError, RuntimeError) as e:
+                failures[r.run_id] = f"{type(e).__name__}: {e}"
+                _log(f"[{i}/{len(runs)}] {r.run_id}: FAILED: {e}")
+                continue
+            records[r.run_id] = rec
+            how = "reused" if rec.get("reused") else f"trained in {rec['train_wall_time_s']:.0f} s"
+            _log(f"[{i}/{len(runs)}] {r.run_id}: {how}; test RMSE {rec['test_rmse_m']:.4g} m "
+                 f"(no motion {rec['test_no_motion_rmse_m']:.4g} m)")
+    if failures:
+        raise RuntimeError(f"{len(failures)} run(s) of suite {suite.name!r} failed (finished "
+                           "runs are kept; rerun to resume): "
+                           + "; ".join(f"{k}: {v}" for k, v in failures.items()))
+    ordered = [records[r.run_id] for r in runs]
+    paths = write_results(out, ordered, runs_dir, suite, figures=figures, data_dir=data_dir)
+    _log(f"suite {suite.name!r} done in {time.time() - t0:.0f} s; results in {out}")
+    return {"results": out, "records": ordered, "paths": paths}
+
+
+def runs_table(records: list) -> pd.DataFrame:
+    rows = []
+    for rec in records:
+        row = {k: v for k, v in rec.items() if k not in ("config", "versions", "reused")}
+        row["overrides"] = " ".join(rec["config"]["overrides"])
+        row["case_hash"] = rec["config"]["case_hash"][:16]
+        for lib, ver in sorted(rec.get("versions", {}).items()):
+            row[f"version_{lib}"] = ver
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def write_results(out: Path, records: list, runs_dir: Path, suite: Suite, *,
+                  figures: bool = True, data_dir=None) -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    metrics = pd.concat([pd.read_csv(runs_dir / r["run"] / METRICS_FILE) for r in records],
+                        ignore_index=True)
+    steps = {c: M.table_steps(c, int(metrics.loc[metrics["case"] == c, "step"].max()) + 1)
+             for c in metrics["case"].unique()}
+    table = M.rmse_at_step_table(
+        metrics[metrics["metric"] == "rmse_at_step"].drop(columns=["metric", "run"]), steps)
+    paths = {"runs": out / "runs.csv", "metrics": out / "metrics.csv",
+             "rmse_at_step": out / "rmse_at_step.csv", "markdown": out / "rmse_at_step.md"}
+    write_csv(paths["runs"], runs_table(records), "runs")
+    write_csv(paths["metrics"], metrics, "metrics")
+    write_csv(paths["rmse_at_step"], table, "rmse_at_step")
+    md = render_markdown(table, metrics, records, suite)
+    store.atomic_write(paths["markdown"], lambda f: f.write(md), mode="w")
+    if figures:
+        from benchmarks import figures as F
+
+        paths["figures"] = F.suite_figures(out / "figures", metrics, records, runs_dir,
+                                           steps, data_dir)
+    return paths
+
+
+def _fmt(x: float) -> str:
+    return "" if not np.isfinite(x) else f"{x:.3g}"
+
+
+def render_markdown(table: pd.DataFrame, metrics: pd.DataFrame, records: list,
+                    suite: Suite) -> str:
+    """Tables in the paper's layout: per case, one row per model (and integrator, seed), one
+    column per step with ``mean ± std`` (mm), then the increase over MeshODENet (%)."""
+    lines = [f"# Suite `{suite.name}`: position RMSE on the test split", "",
+             suite.description + ".", "",
+             "RMSE at step k: root of the mean over all nodes of the squared position error "
+             "at saved frame k, per test trajectory; mean ± std over test trajectories, in mm. "
+             "Generated by `meshbench run`; see `rmse_at_step.csv`.", ""]
+    keys = [c for c in table.columns if c not in ("case", "step", "rmse_mean", "rmse_std",
+                                                   "n_trajectories")
+            and not c.startswith("increase_vs_")]
+    inc = [c for c in table.columns if c.startswith("increase_vs_")][0]
+    full = metrics[metrics["metric"] == "full_rollout_rmse"]
+    for case, dfc in table.groupby("case", sort=True):
+        steps = sorted(dfc["step"].unique())
+        n = int(dfc["n_trajectories"].max())
+        lines += [f"## {case} ({n} test trajectories)", "",
+                  "| " + " | ".join(keys) + " | " + " | ".join(f"step {s}" for s in steps)
+                  + " | full rollout |",
+                  "|" + "---|" * (len(keys) + len(steps) + 1)]
+        for kv, dfm in dfc.groupby(keys, sort=True):
+            kv = kv if isinstance(kv, tuple) else (kv,)
+            d = dfm.set_index("step")
+            cells = [f"{1e3 * d.loc[s, 'rmse_mean']:.3g} ± {1e3 * d.loc[s, 'rmse_std']:.2g}"
+                     for s in steps]
+            sel = full[(full["case"] == case)]
+            for k, v in zip(keys, kv):
+                sel = sel[sel[k] == v]
+            cells.append(f"{1e3 * sel['rmse'].mean():.3g}" if len(sel) else "")
+            lines.append("| " + " | ".join(str(v) for v in kv) + " | " + " | ".join(cells) + " |")
+        lines += ["", f"Increase over MeshODENet (%), `{inc}`:", "",
+                  "| " + " | ".join(keys) + " | " + " | ".join(f"step {s}" for s in steps) + " |",
+                  "|" + "---|" * (len(keys) + len(steps))]
+        for kv, dfm in dfc.groupby(keys, sort=True):
+            kv = kv if isinstance(kv, tuple) else (kv,)
+            d = dfm.set_index("step")
+            lines.append("| " + " | ".join(str(v) for v in kv) + " | "
+                         + " | ".join(_fmt(d.loc[s, inc]) for s in steps) + " |")
+        lines.append("")
+    recs = [r for r in records]
+    lines += ["## Runs", "", "| run | train wall (s) | peak memory (MB) | threads | best epoch | "
+              "test RMSE (mm) | no-motion RMSE (mm) |", "|---|---|---|---|---|---|---|"]
+    for r in recs:
+        lines.append(f"| {r['run']} | {r['train_wall_time_s']:.0f} | {r['peak_rss_mb']:.0f} | "
+                     f"{r['threads']} | {r['best_epoch']} | {1e3 * r['test_rmse_m']:.3g} | "
+                     f"{1e3 * r['test_no_motion_rmse_m']:.3g} |")
+    return "\n".join(lines) + "\n"

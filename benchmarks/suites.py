@@ -1,0 +1,144 @@
+"""Suites: named lists of runs (case x model x integrator x gradient mode x seeds x preset).
+
+A ``RunSpec`` is one training run; its ``run_id`` is the stable string that appears in every
+results CSV and names its directory under ``runs/``. A ``Suite`` expands its specs over seeds.
+Add a suite from a plugin file with ``register_suite``::
+
+    from benchmarks.suites import RunSpec, Suite, register_suite
+    register_suite(Suite("mine", "my rod on both models", (
+        RunSpec("my_rod", "meshodenet", "quick"), RunSpec("my_rod", "mgn", "quick"))))
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from dataclasses import dataclass, field, replace
+
+from benchmarks.registry import lookup
+
+#: The value of the ``integrator`` / ``grad_mode`` columns for models that have none
+#: (MeshGraphNet steps itself autoregressively and trains on single transitions).
+NO_INTEGRATOR = "autoregressive"
+NO_GRAD_MODE = "one_step"
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One training run. ``integrator`` / ``grad_mode`` (MeshODENet only) override the
+    preset's when given; ``overrides`` are extra ``train.FIELD=VALUE`` / ``model.FIELD=VALUE``
+    settings (as ``meshbench train --set``); ``tag`` distinguishes runs that differ only in
+    ``overrides``."""
+
+    case: str
+    model: str
+    preset: str = "quick"
+    integrator: str | None = None
+    grad_mode: str | None = None
+    seed: int = 0
+    overrides: tuple = ()
+    tag: str = ""
+
+    def __post_init__(self):
+        for name in ("case", "model", "preset"):
+            v = getattr(self, name)
+            if not isinstance(v, str) or not v or "/" in v:
+                raise ValueError(f"RunSpec.{name} must be a non-empty id without '/', got {v!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"RunSpec.seed must be an int >= 0, got {self.seed!r}")
+        if self.model != "meshodenet" and (self.integrator or self.grad_mode):
+            # only MeshODENet has these fields; a plugin model with them can use overrides
+            if self.model == "mgn":
+                raise ValueError(f"RunSpec: model 'mgn' has no integrator/grad_mode "
+                                 f"(got {self.integrator!r}, {self.grad_mode!r})")
+
+    @property
+    def run_id(self) -> str:
+        parts = [self.case, self.model, self.preset]
+        if self.integrator:
+            parts.append(self.integrator)
+        if self.grad_mode:
+            parts.append(self.grad_mode)
+        if self.tag:
+            parts.append(self.tag)
+        parts.append(f"s{self.seed}")
+        return "-".join(parts)
+
+    def all_overrides(self) -> tuple:
+        out = list(self.overrides)
+        if self.integrator:
+            out.append(f"model.integrator={self.integrator}")
+        if self.grad_mode:
+            out.append(f"model.grad_mode={self.grad_mode}")
+        if self.seed:
+            out.append(f"train.seed={self.seed}")
+        return tuple(out)
+
+
+@dataclass(frozen=True)
+class Suite:
+    """A named list of runs; ``seeds`` is how many seeds (0..seeds-1) each spec runs with
+    unless ``meshbench run --seeds`` says otherwise."""
+
+    name: str
+    description: str
+    specs: tuple
+    seeds: int = 1
+    notes: str = ""
+    compare_rtol: float = field(default=0.0)
+
+    def runs(self, seeds: int | None = None, only: str | None = None) -> list[RunSpec]:
+        k = self.seeds if seeds is None else seeds
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+            raise ValueError(f"--seeds must be an int >= 1, got {k!r}")
+        out = [replace(s, seed=s.seed + i) for s in self.specs for i in range(k)]
+        if only:
+            pats = [p.strip() for p in only.split(",") if p.strip()]
+            out = [r for r in out if any(fnmatch.fnmatch(r.run_id, p if any(c in p for c in "*?[")
+                                                         else f"*{p}*") for p in pats)]
+            if not out:
+                raise ValueError(f"--only {only!r} matches no run of suite {self.name!r}; its "
+                                 f"runs: {', '.join(r.run_id for r in self.runs(seeds))}")
+        ids = [r.run_id for r in out]
+        dup = sorted({i for i in ids if ids.count(i) > 1})
+        if dup:
+            raise ValueError(f"suite {self.name!r} has duplicate run ids {dup}; give them tags")
+        return out
+
+
+def _both(case: str, preset: str) -> tuple:
+    return (RunSpec(case, "meshodenet", preset), RunSpec(case, "mgn", preset))
+
+
+SUITES: dict = {}
+
+
+def register_suite(suite: Suite, overwrite: bool = False) -> Suite:
+    if suite.name in SUITES and not overwrite:
+        raise ValueError(f"suite {suite.name!r} is already registered; pass overwrite=True")
+    SUITES[suite.name] = suite
+    return suite
+
+
+def get_suite(name: str) -> Suite:
+    return lookup(SUITES, name, "suite")
+
+
+register_suite(Suite(
+    "smoke", "rod_cantilever (6 short trajectories), both models, smoke preset: about a "
+    "minute, for the tests", _both("rod_cantilever", "smoke")))
+register_suite(Suite(
+    "quick", "the paper's two cases, MeshODENet and MGN, quick preset: about 30 minutes on a "
+    "2-core CPU", _both("rod_falling", "quick") + _both("plate_cantilever", "quick"),
+    compare_rtol=0.05))
+register_suite(Suite(
+    "paper", "the paper's two cases, MeshODENet and MGN, the paper's settings (GPU "
+    "recommended: about 45 h per MeshODENet run on a 2-core CPU)",
+    _both("rod_falling", "paper") + _both("plate_cantilever", "paper")))
+register_suite(Suite(
+    "integrators", "MeshODENet on rod_falling (quick preset) with euler / midpoint / rk4 / "
+    "dopri5 (direct gradients) and rk4 with adjoint and checkpointed gradients",
+    tuple(RunSpec("rod_falling", "meshodenet", "quick", integrator=i, grad_mode="direct")
+          for i in ("euler", "midpoint", "rk4", "dopri5"))
+    + (RunSpec("rod_falling", "meshodenet", "quick", integrator="rk4", grad_mode="adjoint"),
+       RunSpec("rod_falling", "meshodenet", "quick", integrator="rk4",
+               grad_mode="checkpoint"))))

@@ -1,0 +1,207 @@
+"""The benchmark suite: `meshbench run` end to end (smoke suite), reuse / retrain / resume of
+runs, a plugin case and suite from a separate file, and every registered case x model through
+generate, the smoke preset and a test rollout."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import textwrap
+
+import pandas as pd
+import pytest
+
+from benchmarks import registry
+from benchmarks.cli import main
+from benchmarks.compare import compare, read_csv
+
+pytest.importorskip("torch")
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    """One run of the smoke suite shared by the tests below (about 30 s)."""
+    root = tmp_path_factory.mktemp("smoke")
+    args = ["run", "--suite", "smoke", "--results", str(root / "results"), "--runs-dir",
+            str(root / "runs"), "--data-dir", str(root / "data"), "--no-progress"]
+    assert main(args) == 0
+    return root, args
+
+
+def test_smoke_suite_writes_every_result(smoke):
+    root, _ = smoke
+    out = root / "results" / "smoke"
+    runs = read_csv(out / "runs.csv")
+    assert list(runs["run"]) == ["rod_cantilever-meshodenet-smoke-s0",
+                                 "rod_cantilever-mgn-smoke-s0"]
+    for col in ("case", "model", "integrator", "grad_mode", "seed", "preset", "hidden", "epochs",
+                "train_wall_time_s", "rollout_wall_time_s", "peak_rss_mb", "device", "threads",
+                "git_sha", "timestamp", "version_torch", "version_numpy"):
+        assert col in runs, col
+    assert (runs["peak_rss_mb"] > 50).all() and (runs["threads"] == 1).all()
+    assert list(runs["integrator"]) == ["rk4", "autoregressive"]
+
+    m = read_csv(out / "metrics.csv")
+    assert set(m["metric"]) == {"rmse_at_step", "full_rollout_rmse"}
+    steps = m[m["metric"] == "rmse_at_step"]
+    # 2 runs x 2 test trajectories x 101 frames, frame 0 exact up to float32
+    assert len(steps) == 2 * 2 * 101
+    assert (steps.loc[steps["step"] == 0, "rmse"] < 1e-7).all()  # float32 round-off
+    full = m[m["metric"] == "full_rollout_rmse"]
+    assert len(full) == 4 and (full["rmse"] > 0).all()
+    # the full-rollout RMSE is the RMS over frames 1.. of the per-step RMSEs
+    s = steps[(steps["run"] == runs["run"][1]) & (steps["trajectory"] == 0) & (steps["step"] > 0)]
+    f = full[(full["run"] == runs["run"][1]) & (full["trajectory"] == 0)]["rmse"].item()
+    assert f == pytest.approx(((s["rmse"] ** 2).mean()) ** 0.5, rel=1e-5)  # CSV keeps 6 digits
+
+    table = read_csv(out / "rmse_at_step.csv")
+    assert sorted(table["step"].unique()) == [1, 20, 40, 60, 80, 100]
+    ref = table[table["model"] == "meshodenet"]
+    assert (ref["increase_vs_meshodenet_pct"] == 0).all()
+    mgn = table[table["model"] == "mgn"].set_index("step")
+    ode = ref.set_index("step")
+    expect = 100 * (mgn["rmse_mean"] / ode["rmse_mean"] - 1)
+    assert mgn["increase_vs_meshodenet_pct"].to_numpy() == pytest.approx(expect.to_numpy(),
+                                                                          rel=1e-4)
+    assert (table["n_trajectories"] == 2).all()
+    md = (out / "rmse_at_step.md").read_text()
+    assert "## rod_cantilever" in md and "step 100" in md
+    for name in ("rmse_vs_step", "snapshots", "loss_curves"):
+        png = out / "figures" / f"{name}_rod_cantilever.png"
+        assert png.stat().st_size > 5000, png
+    # the header documents the RMSE definition
+    assert "sqrt(mean over ALL nodes" in (out / "metrics.csv").read_text().splitlines()[1]
+
+
+def test_rerun_reuses_finished_runs_and_compares_clean(smoke, capsys):
+    root, args = smoke
+    capsys.readouterr()
+    again = [a if a != str(root / "results") else str(root / "again") for a in args]
+    assert main(again + ["--compare-with", str(root / "results")]) == 0
+    cap = capsys.readouterr()
+    assert cap.err.count(": reused;") == 2
+    assert "OK: every value within" in cap.out
+    # the runs.csv rows agree too, provenance aside
+    res = compare(read_csv(root / "results/smoke/runs.csv"), read_csv(root / "again/smoke/runs.csv"))
+    assert res.ok, res.moved
+
+
+def test_compare_with_detects_a_regression(smoke, capsys):
+    root, args = smoke
+    base = root / "baseline"
+    (base / "smoke").mkdir(parents=True)
+    t = pd.read_csv(root / "results/smoke/rmse_at_step.csv", comment="#")
+    t.loc[3, "rmse_mean"] *= 0.5  # the baseline was twice as good there
+    t.to_csv(base / "smoke/rmse_at_step.csv", index=False)
+    again = [a if a != str(root / "results") else str(root / "again2") for a in args]
+    assert main(again + ["--compare-with", str(base), "--no-figures"]) == 1
+    assert "REGRESSION" in capsys.readouterr().out
+    assert main(args + ["--compare-with", str(root / "results")]) == 2
+    assert "compared with themselves" in capsys.readouterr().err
+
+
+def test_bad_suite_and_pattern_are_clear_errors(smoke, capsys):
+    root, args = smoke
+    assert main(["run", "--suite", "nope"]) == 2
+    err = capsys.readouterr().err
+    assert "'nope'" in err and "smoke" in err and "quick" in err
+    assert main(args + ["--only", "plate_zzz"]) == 2
+    assert "matches no run" in capsys.readouterr().err
+    assert main(args + ["--seeds", "0"]) == 2
+    assert "--seeds" in capsys.readouterr().err
+
+
+def test_changed_configuration_retrains_and_interrupted_run_resumes(smoke):
+    import torch
+
+    from benchmarks.runner import execute_run
+    from benchmarks.runs import train_run
+    from benchmarks.suites import RunSpec
+
+    root, _ = smoke
+    data = str(root / "data")
+    run_dir = root / "runs" / "rod_cantilever-mgn-smoke-s0"
+    threads = torch.get_num_threads()
+    try:
+        changed = RunSpec("rod_cantilever", "mgn", "smoke", overrides=("train.lr=0.002",))
+        rec = execute_run(changed, str(run_dir), data, 1, (), False)
+        assert not rec["reused"] and rec["config"]["train"]["lr"] == 0.002
+        assert execute_run(changed, str(run_dir), data, 1, (), False)["reused"]
+
+        # an interrupted run: stop after epoch 1 of 2, then the runner resumes it
+        spec = RunSpec("rod_cantilever", "mgn", "smoke", seed=3)
+        d = root / "runs" / spec.run_id
+
+        def stop(epoch, *a, **k):
+            raise KeyboardInterrupt
+
+        with pytest.raises(KeyboardInterrupt):
+            train_run(spec.case, spec.model, spec.preset, d, data_dir=data,
+                      overrides=spec.all_overrides(), progress=False, on_epoch_end=stop)
+        assert (d / "last.pt").exists() and not (d / "record.json").exists()
+        rec = execute_run(spec, str(d), data, 1, (), False)
+        assert rec["resumed"] and not rec["reused"]
+        hist = pd.read_csv(d / "history.csv")
+        assert list(hist["epoch"]) == [1, 2]
+        assert [s["resumed"] for s in json.loads((d / "sessions.json").read_text())] == [False, True]
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_plugin_case_and_suite_run_end_to_end(tmp_path, monkeypatch, capsys):
+    """The README's recipe: a new rod case and a suite over it, from a separate file."""
+    plugin = tmp_path / "mycases.py"
+    plugin.write_text(textwrap.dedent("""
+        from benchmarks.registry import register_case
+        from benchmarks.suites import RunSpec, Suite, register_suite
+        from groundtruth.cases import RodCase
+
+        register_case(RodCase(id="rod_short", n_nodes=8, length=0.05, t_end=0.5,
+                              n_train=3, n_test=2), overwrite=True)
+        register_suite(Suite("mine", "rod_short on both models",
+                             (RunSpec("rod_short", "meshodenet", "smoke"),
+                              RunSpec("rod_short", "mgn", "smoke"))), overwrite=True)
+    """))
+    from benchmarks import suites
+
+    monkeypatch.setattr(registry, "CASES", dict(registry.CASES))
+    monkeypatch.setattr(suites, "SUITES", dict(suites.SUITES))
+    monkeypatch.chdir(tmp_path)
+    assert main(["--plugin", str(plugin), "run", "--suite", "mine", "--no-progress",
+                 "--jobs", "2"]) == 0
+    table = read_csv(tmp_path / "results/mine/rmse_at_step.csv")
+    assert set(table["case"]) == {"rod_short"} and set(table["model"]) == {"meshodenet", "mgn"}
+    assert sorted(table["step"].unique()) == [1, 2, 3, 4, 5]
+    assert (tmp_path / "data/rod_short/meta.json").exists()
+
+
+def _small(case):
+    """The case with few, short trajectories (same physics, same id)."""
+    return dataclasses.replace(case, n_train=3, n_test=1, t_end=8 * case.save_dt)
+
+
+@pytest.mark.parametrize("case_id", sorted(registry.CASES))
+@pytest.mark.parametrize("model_id", ["meshodenet", "mgn"])
+def test_every_case_and_model_smoke(case_id, model_id, tmp_path, monkeypatch):
+    import numpy as np
+    import torch
+
+    from benchmarks.generate import generate
+    from benchmarks.runs import rollout_arrays, train_run
+    from meshodenet.registry import MODELS
+
+    assert set(MODELS) >= {"meshodenet", "mgn"}
+    small = _small(registry.CASES[case_id])
+    monkeypatch.setattr(registry, "CASES", {**registry.CASES, case_id: small})
+    generate(small, tmp_path, workers=1, progress=False)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        s = train_run(case_id, model_id, "smoke", tmp_path / "run", data_dir=tmp_path,
+                      progress=False)
+        pred, m = rollout_arrays(tmp_path / "run", "test", tmp_path)
+    finally:
+        torch.set_num_threads(threads)
+    assert s["best_epoch"] >= 1 and np.isfinite(s["test_rmse_m"])
+    assert pred["pos"].shape == (1, 9, small.rest_positions().shape[0], 3)
+    assert m["case"] == case_id and np.isfinite(m["rmse_m"])
