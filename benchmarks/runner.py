@@ -86,16 +86,56 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
                 plugin_files: tuple, progress: bool, device: str = "auto") -> dict:
     """Train (or resume, or reuse) ``spec`` in ``run_dir``, roll it out on the test split and
     score it. Returns the run's record (also written to ``run_dir/record.json``)."""
-    import resource
-
     import torch
 
     from benchmarks import plugins
-    from benchmarks.runs import resolve_run, rollout_arrays, train_run
 
     plugins.load_all(plugin_files)
     torch.set_num_threads(threads)
     run_dir = Path(run_dir)
+    with _RunLock(run_dir):
+        return _execute(spec, run_dir, data_dir, progress, device)
+
+
+class _RunLock:
+    """``RUN_DIR/.lock`` holding the owner's pid, so that two suites sharing a runs directory
+    never train the same run at once; a lock left by a dead process is taken over."""
+
+    def __init__(self, run_dir: Path):
+        self.path = Path(run_dir) / ".lock"
+
+    def __enter__(self):
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            except FileExistsError:
+                try:
+                    pid = int(self.path.read_text().strip() or 0)
+                    os.kill(pid, 0)
+                except (ValueError, ProcessLookupError, FileNotFoundError):
+                    self.path.unlink(missing_ok=True)  # stale
+                    continue
+                except PermissionError:
+                    pass
+                raise RuntimeError(f"{self.path.parent} is in use by process {pid} (another "
+                                   "meshbench run?); wait for it or use another --runs-dir") from None
+            with os.fdopen(fd, "w") as f:
+                f.write(str(os.getpid()))
+            return self
+        raise RuntimeError(f"could not lock {self.path}")
+
+    def __exit__(self, *exc):
+        self.path.unlink(missing_ok=True)
+
+
+def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str) -> dict:
+    import resource
+
+    import torch
+
+    from benchmarks.runs import resolve_run, rollout_arrays, train_run
+
     overrides = spec.all_overrides()
     config = resolve_run(spec.case, spec.model, spec.preset, data_dir=data_dir,
                          overrides=overrides)["config"]
@@ -112,12 +152,21 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
             resume = True
         else:
             _log(f"{spec.run_id}: configuration changed since the stored run; retraining")
-            shutil.rmtree(run_dir)
+            for p in run_dir.iterdir():
+                if p.name != ".lock":
+                    shutil.rmtree(p) if p.is_dir() else p.unlink()
     rec_path.unlink(missing_ok=True)
     t0 = time.time()
+    n_epochs = config["train"]["epochs"]
+
+    def log_epoch(epoch, row):  # one line per epoch when the bars are off (--jobs > 1)
+        _log(f"{spec.run_id}: epoch {epoch}/{n_epochs}, loss {row['train_loss']:.4g}, "
+             f"validation RMSE {row['val_rmse']:.4g} m, {row['epoch_time_s']:.0f} s")
+
     summary = train_run(spec.case, spec.model, spec.preset, run_dir, resume=resume,
                         data_dir=data_dir, overrides=overrides, device=device,
-                        progress=progress, evaluate=False)
+                        progress=progress, evaluate=False,
+                        on_epoch_end=None if progress else log_epoch)
     sessions = json.loads((run_dir / "sessions.json").read_text())
     pred, m = rollout_arrays(run_dir, "test", data_dir, "best", device)
     store.save_npz(run_dir / PRED_FILE, pred)
@@ -254,7 +303,12 @@ def write_results(out: Path, records: list, runs_dir: Path, suite: Suite, *,
     write_csv(paths["runs"], runs_table(records), "runs")
     write_csv(paths["metrics"], metrics, "metrics")
     write_csv(paths["rmse_at_step"], table, "rmse_at_step")
-    md = render_markdown(table, metrics, records, suite)
+    baseline = {}
+    for c in metrics["case"].unique():  # the trivial reference, shown in the markdown only
+        true = store.load_split(get_case(c), "test", data_dir)["pos"]
+        baseline[c] = (M.rmse_per_step(M.no_motion(true), true),
+                       M.full_rollout_rmse(M.no_motion(true), true))
+    md = render_markdown(table, metrics, records, suite, baseline)
     store.atomic_write(paths["markdown"], lambda f: f.write(md), mode="w")
     if figures:
         from benchmarks import figures as F
@@ -269,9 +323,11 @@ def _fmt(x: float) -> str:
 
 
 def render_markdown(table: pd.DataFrame, metrics: pd.DataFrame, records: list,
-                    suite: Suite) -> str:
+                    suite: Suite, baseline: dict | None = None) -> str:
     """Tables in the paper's layout: per case, one row per model (and integrator, seed), one
-    column per step with ``mean ± std`` (mm), then the increase over MeshODENet (%)."""
+    column per step with ``mean ± std`` (mm), then the increase over MeshODENet (%).
+    ``baseline[case] = (per-step RMSE (B, T), full-rollout RMSE (B,))`` of the no-motion
+    prediction adds a reference row."""
     lines = [f"# Suite `{suite.name}`: position RMSE on the test split", "",
              suite.description + ".", "",
              "RMSE at step k: root of the mean over all nodes of the squared position error "
@@ -299,6 +355,11 @@ def render_markdown(table: pd.DataFrame, metrics: pd.DataFrame, records: list,
                 sel = sel[sel[k] == v]
             cells.append(f"{1e3 * sel['rmse'].mean():.3g}" if len(sel) else "")
             lines.append("| " + " | ".join(str(v) for v in kv) + " | " + " | ".join(cells) + " |")
+        if baseline and case in baseline:
+            r, f = baseline[case]
+            cells = [f"{1e3 * r[:, s].mean():.3g} ± {1e3 * r[:, s].std():.2g}" for s in steps]
+            lines.append("| *no motion (x = x0)* |" + " |" * (len(keys) - 1) + " "
+                         + " | ".join(cells) + f" | {1e3 * f.mean():.3g} |")
         lines += ["", f"Increase over MeshODENet (%), `{inc}`:", "",
                   "| " + " | ".join(keys) + " | " + " | ".join(f"step {s}" for s in steps) + " |",
                   "|" + "---|" * (len(keys) + len(steps))]

@@ -127,6 +127,15 @@ def test_changed_configuration_retrains_and_interrupted_run_resumes(smoke):
         rec = execute_run(changed, str(run_dir), data, 1, (), False)
         assert not rec["reused"] and rec["config"]["train"]["lr"] == 0.002
         assert execute_run(changed, str(run_dir), data, 1, (), False)["reused"]
+        # a run in use by a live process is refused; a lock left by a dead one is taken over
+        import os
+
+        (run_dir / ".lock").write_text(str(os.getpid()))
+        with pytest.raises(RuntimeError, match="in use by process"):
+            execute_run(changed, str(run_dir), data, 1, (), False)
+        (run_dir / ".lock").write_text("999999999")
+        assert execute_run(changed, str(run_dir), data, 1, (), False)["reused"]
+        assert not (run_dir / ".lock").exists()
 
         # an interrupted run: stop after epoch 1 of 2, then the runner resumes it
         spec = RunSpec("rod_cantilever", "mgn", "smoke", seed=3)
