@@ -57,8 +57,9 @@ def meshodenet_presets(preset: str, kind: str) -> tuple[TrainConfig, MeshODENetC
       per step, the horizon doubling every epoch until whole trajectories are rolled out from
       the initial state (rod: 10, 20, 40, 80, 160 intervals, then 5 epochs of whole 200-frame
       rollouts; plate: 32 ... 256, then 2 epochs of whole 500-frame rollouts). Plates cap each
-      epoch at 8 steps (a random subset of the windows) to fit the time budget; their
-      ``quick`` has been timed on a synthetic mesh of the plate's size only.
+      epoch at 8 steps (a random subset of the windows) to fit the time budget. Measured on
+      a 2-core CPU: the rod learns (test RMSE 4.2 mm, no motion 62.9 mm, 6 min); the plate
+      does not (1.18 m, no motion 0.81 m, 6.5 min) -- see docs/TRAINING.md.
     - ``smoke``: a tiny model, 2 epochs, for tests.
     """
     check_preset(preset)

@@ -214,3 +214,26 @@ def test_every_case_and_model_smoke(case_id, model_id, tmp_path, monkeypatch):
     assert s["best_epoch"] >= 1 and np.isfinite(s["test_rmse_m"])
     assert pred["pos"].shape == (1, 9, small.rest_positions().shape[0], 3)
     assert m["case"] == case_id and np.isfinite(m["rmse_m"])
+
+
+def test_every_registered_suite_resolves():
+    """Each run of each suite names registered ids and a valid configuration (e.g. the
+    integrators suite's dopri5 + direct and rk4 + adjoint), without training anything."""
+    from benchmarks.runs import apply_overrides
+    from benchmarks.suites import SUITES
+    from meshodenet.registry import get_model_spec
+
+    assert {"smoke", "quick", "paper", "integrators"} <= set(SUITES)
+    for suite in SUITES.values():
+        runs = suite.runs()
+        assert runs and len({r.run_id for r in runs}) == len(runs)
+        for r in runs:
+            kind = "triangle" if len(registry.get_case(r.case).mesh()[1]) else "line"
+            train, model = apply_overrides(*get_model_spec(r.model).presets(r.preset, kind),
+                                           r.all_overrides())
+            if r.integrator:
+                assert model.integrator == r.integrator and model.grad_mode == r.grad_mode
+    ids = [r.run_id for r in SUITES["integrators"].runs(seeds=2)]
+    assert "rod_falling-meshodenet-quick-dopri5-direct-s1" in ids and len(ids) == 12
+    assert [r.run_id for r in SUITES["quick"].runs(only="*-mgn-*")] == [
+        "rod_falling-mgn-quick-s0", "plate_cantilever-mgn-quick-s0"]
