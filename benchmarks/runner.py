@@ -160,8 +160,10 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
     n_epochs = config["train"]["epochs"]
 
     def log_epoch(epoch, row):  # one line per epoch when the bars are off (--jobs > 1)
-        _log(f"{spec.run_id}: epoch {epoch}/{n_epochs}, loss {row['train_loss']:.4g}, "
-             f"validation RMSE {row['val_rmse']:.4g} m, {row['epoch_time_s']:.0f} s")
+        val = row["val_rmse"]
+        val = "not validated" if val != val else f"validation RMSE {val:.4g} m"  # NaN: skipped
+        _log(f"{spec.run_id}: epoch {epoch}/{n_epochs}, loss {row['train_loss']:.4g}, {val}, "
+             f"{row['epoch_time_s']:.0f} s")
 
     summary = train_run(spec.case, spec.model, spec.preset, run_dir, resume=resume,
                         data_dir=data_dir, overrides=overrides, device=device,
