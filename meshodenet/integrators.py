@@ -78,10 +78,34 @@ class Adaptive:
     def solve(self, f, z0, t, rtol: float = 1e-4, atol: float = 1e-7, **_):
         from torchdiffeq import odeint
 
-        return odeint(f, z0, t, rtol=rtol, atol=atol, method=self.id)
+        return capped(lambda opts: odeint(f, z0, t, rtol=rtol, atol=atol, method=self.id,
+                                          options=opts), z0, t, self.id)
 
     def torchdiffeq_options(self, substeps: int) -> tuple[str, dict]:
         return self.id, {}
+
+
+#: An adaptive solve gives up after this many accepted steps per output interval (a learned
+#: field can be arbitrarily stiff early in training; uncapped, dopri5 would crawl for hours).
+MAX_STEPS_PER_INTERVAL = 1000
+
+
+def capped(solve, z0: torch.Tensor, t: torch.Tensor, name: str) -> torch.Tensor:
+    """Run ``solve(options)`` with torchdiffeq's ``max_num_steps`` cap; past the cap, warn and
+    return NaN for every output (the trainer skips such a step, a rollout scores inf)."""
+    import warnings
+
+    cap = MAX_STEPS_PER_INTERVAL * max(1, len(t) - 1)
+    try:
+        return solve({"max_num_steps": cap})
+    except AssertionError as e:
+        if "max_num_steps" not in str(e):
+            raise
+        warnings.warn(f"{name}: more than {cap} steps for {len(t) - 1} intervals (the vector "
+                      "field is too stiff for rtol/atol); the result is NaN. Loosen "
+                      "model.rtol/model.atol or use a fixed-step integrator.", RuntimeWarning,
+                      stacklevel=2)
+        return torch.full((len(t), *z0.shape), float("nan"), dtype=z0.dtype, device=z0.device)
 
 
 def _subdivide(substeps: int):
@@ -144,8 +168,12 @@ def odesolve(f, z0: torch.Tensor, t: torch.Tensor, method: str = "rk4",
         adj_opts = dict(opts, norm="seminorm") if seminorm else dict(opts)
         tol = {"rtol": rtol, "atol": atol} if integ.adaptive else {}
         params = tuple(f.parameters()) if params is None else tuple(params)
-        return odeint_adjoint(f, z0, t, method=name, options=opts or None,
-                              adjoint_options=adj_opts, adjoint_params=params, **tol)
+        if not integ.adaptive:
+            return odeint_adjoint(f, z0, t, method=name, options=opts or None,
+                                  adjoint_options=adj_opts, adjoint_params=params, **tol)
+        return capped(lambda o: odeint_adjoint(f, z0, t, method=name, options=o,
+                                               adjoint_options=dict(adj_opts, **o),
+                                               adjoint_params=params, **tol), z0, t, name)
     raise ValueError(f"unknown gradient mode {grad_mode!r}; valid: {', '.join(GRADIENT_MODES)}")
 
 

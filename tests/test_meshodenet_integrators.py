@@ -153,3 +153,27 @@ def test_every_integrator_rolls_out(arrays):
         model = MeshODENet(Mesh.from_arrays(arrays), cfg, data).double()
         pos, vel = model.rollout(data.pos[:, 0], data.vel[:, 0], data.youngs, data.t)
         assert pos.shape == data.pos.shape and torch.isfinite(pos).all()
+
+
+def test_adaptive_solver_gives_up_on_a_stiff_field_with_a_warning():
+    """A stiff field must not make dopri5 crawl for hours: past the step cap the solve returns
+    NaN (training skips the step) with a warning naming the tolerances."""
+    import torch
+
+    from meshodenet.integrators import MAX_STEPS_PER_INTERVAL, odesolve
+
+    calls = []
+
+    def f(t, z):
+        calls.append(1)
+        return -1e9 * z * (1 + torch.sin(1e4 * t))
+
+    z0 = torch.ones(3, dtype=torch.float64)
+    t = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    with pytest.warns(RuntimeWarning, match="too stiff"):
+        z = odesolve(f, z0, t, "dopri5", rtol=1e-8, atol=1e-12)
+    assert z.shape == (2, 3) and torch.isnan(z).all()
+    assert len(calls) <= 7 * MAX_STEPS_PER_INTERVAL * 2
+    # a benign field is unaffected
+    z = odesolve(lambda t, z: -z, z0, t, "dopri5", rtol=1e-8, atol=1e-10)
+    assert torch.allclose(z[-1], z0 * torch.exp(torch.tensor(-1.0, dtype=torch.float64)))
