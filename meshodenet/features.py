@@ -21,6 +21,8 @@ buffers, so they travel with the model's ``state_dict``.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import nn
 
@@ -192,3 +194,49 @@ class FeatureStats(nn.Module):
         for norm, mom in ((self.node, node), (self.edge, edge), (self.acc, acc)):
             norm.set_stats(*mom.result())
         return self
+
+
+@dataclass(frozen=True)
+class GraphContext:
+    """Everything about a batch of trajectories that stays fixed while it is rolled out: the
+    graph, the normalised static features, and the normalisers' dynamic slices, all in the
+    working dtype. Built by ``FeatureStats.context``; shared by every model."""
+
+    batch: GraphBatch
+    kind: str
+    node_static: torch.Tensor  # (M, s) normalised
+    edge_static: torch.Tensor  # (D, 4) normalised
+    node_mean: torch.Tensor
+    node_std: torch.Tensor
+    edge_mean: torch.Tensor
+    edge_std: torch.Tensor
+    acc_mean: torch.Tensor
+    acc_std: torch.Tensor
+
+    def inputs(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Normalised node and edge inputs of the GNN at positions ``x`` and velocities ``v``
+        ``(M, 3)``: static features followed by the dynamic ones."""
+        b = self.batch
+        node_in = torch.cat([self.node_static,
+                             (dynamic_node_features(x, v, b, self.kind) - self.node_mean)
+                             / self.node_std], dim=-1)
+        edge_in = torch.cat([self.edge_static,
+                             (dynamic_edge_features(x, b) - self.edge_mean) / self.edge_std],
+                            dim=-1)
+        return node_in, edge_in
+
+
+def graph_context(stats: FeatureStats, topology: GraphTopology, youngs: torch.Tensor,
+                  dtype=None, cls=GraphContext, **extra) -> GraphContext:
+    """``cls`` (a ``GraphContext``, or a subclass with the fields ``extra``) for trajectories
+    of moduli ``youngs (B,)`` on ``topology``, normalised with ``stats``."""
+    dtype = dtype or youngs.dtype
+    batch = topology.batch(len(youngs), youngs.device, dtype)
+    s = NODE_STATIC[stats.kind]
+    cast = lambda a: a.to(device=youngs.device, dtype=dtype)
+    nm, ns = cast(stats.node.mean), cast(stats.node.std)
+    em, es = cast(stats.edge.mean), cast(stats.edge.std)
+    node_static = (static_node_features(batch, youngs.to(dtype), stats.kind) - nm[:s]) / ns[:s]
+    edge_static = (static_edge_features(batch) - em[:EDGE_STATIC]) / es[:EDGE_STATIC]
+    return cls(batch, stats.kind, node_static, edge_static, nm[s:], ns[s:], em[EDGE_STATIC:],
+               es[EDGE_STATIC:], cast(stats.acc.mean), cast(stats.acc.std), **extra)

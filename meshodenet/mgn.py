@@ -45,15 +45,12 @@ from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import (
     EDGE_DYNAMIC,
     EDGE_STATIC,
-    NODE_STATIC,
     FeatureStats,
-    dynamic_edge_features,
-    dynamic_node_features,
+    GraphContext,
+    graph_context,
     n_node_features,
-    static_edge_features,
-    static_node_features,
 )
-from meshodenet.graph import GraphBatch, GraphTopology
+from meshodenet.graph import GraphTopology
 from meshodenet.interface import TrajectoryModel
 from meshodenet.layers import ACTIVATIONS, EncodeProcessDecode, InteractionLayer
 from meshodenet.presets import check_preset, paper_train_config
@@ -131,20 +128,10 @@ class MeshGraphNetwork(EncodeProcessDecode):
 
 
 @dataclass(frozen=True)
-class StepContext:
-    """What stays fixed during a rollout or a training batch: the graph, normalised static
-    features, the normalisers' dynamic slices, the frame interval, all in the working dtype."""
+class StepContext(GraphContext):
+    """A ``GraphContext`` plus the frame interval ``dt`` (s) the model steps."""
 
-    batch: GraphBatch
-    node_static: torch.Tensor  # (M, s)
-    edge_static: torch.Tensor  # (D, 4)
-    node_mean: torch.Tensor
-    node_std: torch.Tensor
-    edge_mean: torch.Tensor
-    edge_std: torch.Tensor
-    acc_mean: torch.Tensor
-    acc_std: torch.Tensor
-    dt: float
+    dt: float = 0.0
 
 
 def frame_interval(t: torch.Tensor, what: str = "t") -> float:
@@ -212,29 +199,15 @@ class MeshGraphNet(TrajectoryModel):
     # --- one step -----------------------------------------------------------------------------
     def context(self, youngs: torch.Tensor, dtype=None) -> StepContext:
         """The ``StepContext`` for trajectories of moduli ``youngs (B,)``."""
-        dtype = dtype or youngs.dtype
-        batch = self.topology.batch(len(youngs), youngs.device, dtype)
-        s = NODE_STATIC[self.kind]
-        cast = lambda a: a.to(device=youngs.device, dtype=dtype)
-        nm, ns = cast(self.stats.node.mean), cast(self.stats.node.std)
-        em, es = cast(self.stats.edge.mean), cast(self.stats.edge.std)
-        node_static = (static_node_features(batch, youngs.to(dtype), self.kind) - nm[:s]) / ns[:s]
-        edge_static = (static_edge_features(batch) - em[:EDGE_STATIC]) / es[:EDGE_STATIC]
-        return StepContext(batch, node_static, edge_static, nm[s:], ns[s:], em[EDGE_STATIC:],
-                           es[EDGE_STATIC:], cast(self.stats.acc.mean), cast(self.stats.acc.std),
-                           float(self.dt))
+        return graph_context(self.stats, self.topology, youngs, dtype, StepContext,
+                             dt=float(self.dt))
 
     def forward(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext) -> torch.Tensor:
         """Normalised acceleration ``(M, 3)`` from positions ``x, x_prev (M, 3)`` of frames
         ``k`` and ``k - 1``."""
         b = ctx.batch
         v = (x - x_prev) / ctx.dt * b.free
-        node_in = torch.cat([ctx.node_static,
-                             (dynamic_node_features(x, v, b, self.kind) - ctx.node_mean)
-                             / ctx.node_std], dim=-1)
-        edge_in = torch.cat([ctx.edge_static,
-                             (dynamic_edge_features(x, b) - ctx.edge_mean) / ctx.edge_std],
-                            dim=-1)
+        node_in, edge_in = ctx.inputs(x, v)
         return self.gnn(node_in, edge_in, b.senders, b.receivers)
 
     def step(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext) -> torch.Tensor:

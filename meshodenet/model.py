@@ -19,15 +19,12 @@ from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import (
     EDGE_DYNAMIC,
     EDGE_STATIC,
-    NODE_STATIC,
     FeatureStats,
-    dynamic_edge_features,
-    dynamic_node_features,
+    GraphContext,
+    graph_context,
     n_node_features,
-    static_edge_features,
-    static_node_features,
 )
-from meshodenet.graph import GraphBatch, GraphTopology
+from meshodenet.graph import GraphTopology
 from meshodenet.integrators import GRADIENT_MODES, INTEGRATORS, odesolve
 from meshodenet.interface import TrajectoryModel
 from meshodenet.layers import ACTIVATIONS, EncodeProcessDecode
@@ -115,20 +112,8 @@ class MeshODENetConfig:
                 "atol": 1e-7 if self.atol is None else self.atol}
 
 
-@dataclass(frozen=True)
-class FieldContext:
-    """Everything about a batch of trajectories that stays fixed during a rollout: the graph,
-    normalised static features, and the normalisers' dynamic slices in the working dtype."""
-
-    batch: GraphBatch
-    node_static: torch.Tensor  # (M, s) normalised
-    edge_static: torch.Tensor  # (D, 4) normalised
-    node_mean: torch.Tensor
-    node_std: torch.Tensor
-    edge_mean: torch.Tensor
-    edge_std: torch.Tensor
-    acc_mean: torch.Tensor
-    acc_std: torch.Tensor
+#: The fixed part of a rollout (graph, normalised static features, normaliser slices).
+FieldContext = GraphContext
 
 
 class _BoundField(nn.Module):
@@ -172,28 +157,13 @@ class MeshODENet(TrajectoryModel):
     # --- the vector field -------------------------------------------------------------------
     def field_context(self, youngs: torch.Tensor, dtype=None) -> FieldContext:
         """Build (once per rollout) the context for trajectories of moduli ``youngs (B,)``."""
-        dtype = dtype or youngs.dtype
-        batch = self.topology.batch(len(youngs), youngs.device, dtype)
-        s = NODE_STATIC[self.kind]
-        cast = lambda a: a.to(device=youngs.device, dtype=dtype)
-        nm, ns = cast(self.stats.node.mean), cast(self.stats.node.std)
-        em, es = cast(self.stats.edge.mean), cast(self.stats.edge.std)
-        node_static = (static_node_features(batch, youngs.to(dtype), self.kind) - nm[:s]) / ns[:s]
-        edge_static = (static_edge_features(batch) - em[:EDGE_STATIC]) / es[:EDGE_STATIC]
-        return FieldContext(batch, node_static, edge_static, nm[s:], ns[s:],
-                            em[EDGE_STATIC:], es[EDGE_STATIC:],
-                            cast(self.stats.acc.mean), cast(self.stats.acc.std))
+        return graph_context(self.stats, self.topology, youngs, dtype)
 
     def vector_field(self, z: torch.Tensor, ctx: FieldContext) -> torch.Tensor:
         """``dz/dt = [v, a]`` for ``z = [x, v]`` of shape ``(2, M, 3)``; clamped nodes frozen."""
         b = ctx.batch
         x, v = z[0], z[1] * b.free
-        node_in = torch.cat([ctx.node_static,
-                             (dynamic_node_features(x, v, b, self.kind) - ctx.node_mean)
-                             / ctx.node_std], dim=-1)
-        edge_in = torch.cat([ctx.edge_static,
-                             (dynamic_edge_features(x, b) - ctx.edge_mean) / ctx.edge_std],
-                            dim=-1)
+        node_in, edge_in = ctx.inputs(x, v)
         a = self.gnn(node_in, edge_in, b.senders, b.receivers)
         a = (a * ctx.acc_std + ctx.acc_mean) * b.free
         return torch.stack([v, a])
