@@ -78,3 +78,16 @@ MESHES = {"rod": rod_arrays, "strip": strip_arrays}
 @pytest.fixture(params=sorted(MESHES))
 def arrays(request):
     return MESHES[request.param]()
+
+
+def permuted_arrays(arrays, perm):
+    """The same arrays with node i renamed inv[i] (new node k is old node perm[k]);
+    returns ``(arrays, inv)``."""
+    inv = np.argsort(perm)
+    out = dict(arrays)
+    for k in ("pos", "vel"):
+        out[k] = arrays[k][:, :, perm]
+    for k in ("node_type", "rest_pos", "mass", "force", "damping"):
+        out[k] = arrays[k][perm]
+    out["edges"], out["cells"] = inv[arrays["edges"]], inv[arrays["cells"]]
+    return out, inv

@@ -9,6 +9,7 @@ from meshodenet.data import DataError, Mesh, Trajectories
 from meshodenet.features import Normalizer
 from meshodenet.graph import rod_hinges
 from meshodenet.model import MeshODENet, MeshODENetConfig
+from tests.conftest import permuted_arrays
 
 torch.set_num_threads(1)  # tiny graphs: threads only add overhead
 
@@ -53,23 +54,10 @@ def test_gradcheck_parameters_float64(arrays):
     assert torch.autograd.gradcheck(f, inputs, eps=1e-7, atol=1e-6, rtol=1e-4)
 
 
-def _permuted(arrays, perm):
-    """The same arrays with node i renamed inv[i] (new node k is old node perm[k])."""
-    inv = np.argsort(perm)
-    out = dict(arrays)
-    for k in ("pos", "vel"):
-        out[k] = arrays[k][:, :, perm]
-    for k in ("node_type", "rest_pos", "mass", "force", "damping"):
-        out[k] = arrays[k][perm]
-    out["edges"] = inv[arrays["edges"]]
-    out["cells"] = inv[arrays["cells"]]
-    return out, inv
-
-
 def test_permutation_equivariance(arrays):
     model, data = build(arrays)
     perm = np.random.default_rng(5).permutation(len(arrays["node_type"]))
-    parr, inv = _permuted(arrays, perm)
+    parr, inv = permuted_arrays(arrays, perm)
     hinges = None
     if model.kind == "line":
         hinges = inv[rod_hinges(arrays["edges"], len(perm))]

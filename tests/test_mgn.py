@@ -19,7 +19,7 @@ from meshodenet.mgn import (
     mgn_presets,
 )
 from meshodenet.train import TrainConfig, fit, make_optimizer
-from tests.conftest import rod_arrays, strip_arrays
+from tests.conftest import permuted_arrays, rod_arrays, strip_arrays
 
 torch.set_num_threads(1)  # tiny graphs: threads only add overhead
 
@@ -100,21 +100,10 @@ def test_layer_norm_on_every_mlp_but_the_decoder():
     assert len({id(b.edge_mlp[0].weight) for b in gnn.processor}) == 3  # unshared
 
 
-def _permuted(arrays, perm):
-    inv = np.argsort(perm)
-    out = dict(arrays)
-    for k in ("pos", "vel"):
-        out[k] = arrays[k][:, :, perm]
-    for k in ("node_type", "rest_pos", "mass", "force", "damping"):
-        out[k] = arrays[k][perm]
-    out["edges"], out["cells"] = inv[arrays["edges"]], inv[arrays["cells"]]
-    return out, inv
-
-
 def test_permutation_equivariance(arrays):
     model, data = build(arrays)
     perm = np.random.default_rng(5).permutation(len(arrays["node_type"]))
-    parr, inv = _permuted(arrays, perm)
+    parr, inv = permuted_arrays(arrays, perm)
     hinges = inv[rod_hinges(arrays["edges"], len(perm))] if model.kind == "line" else None
     pmodel, pdata = build(parr, hinges=hinges, seed=1)
     pmodel.load_state_dict(model.state_dict())
