@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from benchmarks.registry import get_case
 from groundtruth import store
 
 COLORS = {"meshodenet": "tab:blue", "mgn": "tab:red"}
@@ -48,11 +47,12 @@ def rmse_vs_step(metrics: pd.DataFrame, case: str, path: Path) -> Path:
                 & (metrics["step"] > 0)]
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     groups = ["model", "integrator", "grad_mode"]
+    few = m.groupby(groups).ngroups <= 2  # model colours; otherwise one colour per line
     for i, (key, d) in enumerate(m.groupby(groups, sort=True)):
         g = d.groupby("step")["rmse"]
         mean, lo, hi = g.mean(), g.min(), g.max()
         label = key[0] if key[0] != "meshodenet" else f"meshodenet ({key[1]}, {key[2]})"
-        c = _color(key[0], i) if m.groupby(groups).ngroups <= 2 else f"C{i}"
+        c = _color(key[0], i) if few else f"C{i}"
         ax.plot(mean.index, mean.values, color=c, label=label)
         ax.fill_between(mean.index, lo.values, hi.values, color=c, alpha=0.2, lw=0)
     ax.set_yscale("log")
@@ -71,12 +71,11 @@ def _plane(true: np.ndarray) -> tuple[int, int]:
     return int(a), int(b)
 
 
-def snapshots(case: str, records: list, runs_dir: Path, steps, path: Path, data_dir=None,
+def snapshots(case: str, records: list, runs_dir: Path, steps, path: Path, true: dict,
               n_show: int = 2) -> Path:
     """Predicted vs ground-truth shapes at ``steps`` for ``n_show`` test trajectories (lowest
     and highest Young's modulus), projected on the plane of motion."""
     plt = _plt()
-    true = store.load_split(get_case(case), "test", data_dir)
     pos, youngs = true["pos"], np.asarray(true["youngs"]).ravel()
     order = np.argsort(youngs)
     show = [int(order[0]), int(order[-1])][:n_show] if len(order) > 1 else [0]
@@ -138,7 +137,8 @@ def loss_curves(case: str, records: list, runs_dir: Path, path: Path) -> Path:
 
 
 def suite_figures(out: Path, metrics: pd.DataFrame, records: list, runs_dir: Path,
-                  steps: dict, data_dir=None) -> list:
+                  steps: dict, tests: dict) -> list:
+    """``tests[case]``: the case's test-split arrays (ground truth of the snapshots)."""
     out = Path(out)
     paths = []
     for case in sorted(metrics["case"].unique()):
@@ -146,6 +146,6 @@ def suite_figures(out: Path, metrics: pd.DataFrame, records: list, runs_dir: Pat
         paths.append(rmse_vs_step(metrics, case, out / f"rmse_vs_step_{case}.png"))
         seed0 = [r for r in recs if r["seed"] == min(x["seed"] for x in recs)]
         paths.append(snapshots(case, seed0, runs_dir, steps[case], out / f"snapshots_{case}.png",
-                               data_dir))
+                               tests[case]))
         paths.append(loss_curves(case, recs, runs_dir, out / f"loss_curves_{case}.png"))
     return paths

@@ -170,9 +170,9 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
                         progress=progress, evaluate=False,
                         on_epoch_end=None if progress else log_epoch)
     sessions = json.loads((run_dir / "sessions.json").read_text())
-    pred, m = rollout_arrays(run_dir, "test", data_dir, "best", device)
-    store.save_npz(run_dir / PRED_FILE, pred)
     true = store.load_split(get_case(spec.case), "test", data_dir)
+    pred, m = rollout_arrays(run_dir, "test", data_dir, "best", device, arrays=true)
+    store.save_npz(run_dir / PRED_FILE, pred)
     integ, grad = _integrator_ids(config)
     ids = {"run": spec.run_id, "case": spec.case, "model": spec.model, "preset": spec.preset,
            "integrator": integ, "grad_mode": grad, "seed": spec.seed}
@@ -233,11 +233,11 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
         raise ValueError(f"--jobs must be an int >= 1, got {jobs!r}")
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
         raise ValueError(f"--threads must be an int >= 1, got {threads!r}")
+    from meshodenet.registry import get_model_spec
+
     runs = suite.runs(seeds, only)
     for r in runs:  # fail before any work on an unknown id
         get_case(r.case)
-        from meshodenet.registry import get_model_spec
-
         get_model_spec(r.model)
     out = Path(results_dir) / suite.name
     runs_dir = Path(runs_dir)
@@ -305,9 +305,10 @@ def write_results(out: Path, records: list, runs_dir: Path, suite: Suite, *,
     write_csv(paths["runs"], runs_table(records), "runs")
     write_csv(paths["metrics"], metrics, "metrics")
     write_csv(paths["rmse_at_step"], table, "rmse_at_step")
-    baseline = {}
-    for c in metrics["case"].unique():  # the trivial reference, shown in the markdown only
-        true = store.load_split(get_case(c), "test", data_dir)["pos"]
+    tests = {c: store.load_split(get_case(c), "test", data_dir) for c in metrics["case"].unique()}
+    baseline = {}  # the trivial reference, shown in the markdown only
+    for c, arrays in tests.items():
+        true = arrays["pos"]
         baseline[c] = (M.rmse_per_step(M.no_motion(true), true),
                        M.full_rollout_rmse(M.no_motion(true), true))
     md = render_markdown(table, metrics, records, suite, baseline)
@@ -316,7 +317,7 @@ def write_results(out: Path, records: list, runs_dir: Path, suite: Suite, *,
         from benchmarks import figures as F
 
         paths["figures"] = F.suite_figures(out / "figures", metrics, records, runs_dir,
-                                           steps, data_dir)
+                                           steps, tests)
     return paths
 
 

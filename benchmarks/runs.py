@@ -204,9 +204,10 @@ def _load_run(run_dir: Path, checkpoint: str, device: str):
 
 
 def rollout_arrays(run_dir, split: str = "test", data_dir=None, checkpoint: str = "best",
-                   device: str = "auto", data_file=None) -> tuple[dict, dict]:
+                   device: str = "auto", data_file=None, arrays=None) -> tuple[dict, dict]:
     """Roll the run's model out over a split (or ``data_file``); returns the store-format
-    arrays of the prediction and metrics (position RMSE and the no-motion baseline, m)."""
+    arrays of the prediction and metrics (position RMSE and the no-motion baseline, m).
+    ``arrays``: the split's arrays when the caller has already loaded them."""
     from meshodenet.data import Mesh, Trajectories
     from meshodenet.metrics import no_motion, position_rmse, rmse_per_frame
 
@@ -216,8 +217,8 @@ def rollout_arrays(run_dir, split: str = "test", data_dir=None, checkpoint: str 
         arrays = store.load_npz(Path(data_file))
         name = str(data_file)
     else:
-        arrays = store.load_split(case, split, data_dir)
         name = f"{case.id}/{split}.npz"
+        arrays = store.load_split(case, split, data_dir) if arrays is None else arrays
     model.check_mesh(Mesh.from_arrays(arrays, name), name)
     data = Trajectories.from_arrays(arrays, device=model.device, name=name)
     t0 = time.perf_counter()

@@ -12,7 +12,7 @@ Add a suite from a plugin file with ``register_suite``::
 from __future__ import annotations
 
 import fnmatch
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 from benchmarks.registry import lookup
 
@@ -45,11 +45,10 @@ class RunSpec:
                 raise ValueError(f"RunSpec.{name} must be a non-empty id without '/', got {v!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"RunSpec.seed must be an int >= 0, got {self.seed!r}")
-        if self.model != "meshodenet" and (self.integrator or self.grad_mode):
-            # only MeshODENet has these fields; a plugin model with them can use overrides
-            if self.model == "mgn":
-                raise ValueError(f"RunSpec: model 'mgn' has no integrator/grad_mode "
-                                 f"(got {self.integrator!r}, {self.grad_mode!r})")
+        # a plugin model with such fields can set them through overrides
+        if self.model == "mgn" and (self.integrator or self.grad_mode):
+            raise ValueError(f"RunSpec: model 'mgn' has no integrator/grad_mode "
+                             f"(got {self.integrator!r}, {self.grad_mode!r})")
 
     @property
     def run_id(self) -> str:
@@ -84,7 +83,7 @@ class Suite:
     specs: tuple
     seeds: int = 1
     notes: str = ""
-    compare_rtol: float = field(default=0.0)
+    compare_rtol: float = 0.0
 
     def runs(self, seeds: int | None = None, only: str | None = None) -> list[RunSpec]:
         k = self.seeds if seeds is None else seeds
