@@ -10,8 +10,9 @@ case, taken from the case at run time) and per regime:
   ``4 * intervals`` evaluations of the rollout.
 
 Reported: evaluations per second, achieved GFLOP/s from the FLOP count below, the machine's
-measured matmul peak on the same shapes, and peak memory (max RSS of a fresh process running
-that regime, minus the RSS before it). Further: the ``paper``-setting epoch time of the rod and
+measured matmul peak on the same shapes, and peak memory (peak
+resident memory, ``VmHWM``, of a fresh process running that regime three times, minus its
+resident memory before). Further: the ``paper``-setting epoch time of the rod and
 the plate (hidden 128, batch 1, whole rollouts, ``checkpoint`` gradients; estimated from
 ``--epoch-steps`` optimizer steps times the steps per epoch, validation excluded) with its peak
 memory, and the time per trajectory of a rollout of the paper-size surrogate against the DER /
@@ -162,22 +163,35 @@ class Regime:
         return reps * self.evals
 
 
+def _status_gb(field: str) -> float:
+    """``VmRSS`` (now) or ``VmHWM`` (peak) of this process from /proc, in GB. Not
+    ``getrusage``: its ``ru_maxrss`` survives ``execve``, so a spawned child would inherit the
+    parent's peak."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024**2
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+
+
 def _rss_gb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1024**3
+    return _status_gb("VmRSS")
+
+
+def _peak_gb() -> float:
+    return _status_gb("VmHWM")
 
 
 def _memory_child(graph: str, regime: str, impl: str, train_intervals: int,
                   threads: int) -> dict:
-    """Fresh process: peak RSS of one regime (two repetitions) above the RSS after setup."""
+    """Fresh process: peak RSS of one regime (three repetitions) above the RSS after setup."""
     import torch
 
     torch.set_num_threads(threads)
     r = Regime(graph, regime, impl, train_intervals)
-    r.run(1)
     base = _rss_gb()
-    r.run(2)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    r.run(3)
+    peak = _peak_gb()
     return {"peak_rss_gb": peak, "setup_rss_gb": base, "peak_above_setup_gb": max(peak - base, 0)}
 
 
@@ -201,7 +215,7 @@ def _epoch_child(case_id: str, impl: str, steps: int, threads: int) -> dict:
     t0 = time.perf_counter()
     train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(1), max_batches=steps)
     wall = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    peak = _peak_gb()
     return {"case": case_id, "impl": impl, "steps_timed": steps,
             "steps_per_epoch": steps_per_epoch, "step_s": wall / steps,
             "epoch_s": wall / steps * steps_per_epoch, "peak_rss_gb": peak,

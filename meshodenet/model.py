@@ -13,8 +13,8 @@ import math
 from dataclasses import dataclass
 
 import torch
-from torch import nn
 
+from meshodenet import fast, reference
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import (
     EDGE_DYNAMIC,
@@ -25,7 +25,7 @@ from meshodenet.features import (
     n_node_features,
 )
 from meshodenet.graph import GraphTopology
-from meshodenet.integrators import GRADIENT_MODES, INTEGRATORS, odesolve
+from meshodenet.integrators import GRADIENT_MODES, INTEGRATORS
 from meshodenet.interface import TrajectoryModel
 from meshodenet.layers import ACTIVATIONS, EncodeProcessDecode
 
@@ -116,20 +116,6 @@ class MeshODENetConfig:
 FieldContext = GraphContext
 
 
-class _BoundField(nn.Module):
-    """``f(t, z)`` for the solvers: the model's vector field on one ``FieldContext``.
-    An ``nn.Module`` whose parameters are the model's, as the adjoint needs."""
-
-    def __init__(self, model: MeshODENet, ctx: FieldContext):
-        super().__init__()
-        self.model = model
-        self.ctx = ctx
-
-    def forward(self, t, z):
-        self.model.nfe += 1
-        return self.model.vector_field(z, self.ctx)
-
-
 class MeshODENet(TrajectoryModel):
     """The paper's model behind the ``TrajectoryModel`` interface (see there for shapes).
 
@@ -138,6 +124,9 @@ class MeshODENet(TrajectoryModel):
     """
 
     name = "meshodenet"
+    #: ``"fast"`` (``meshodenet.fast``) or ``"reference"`` (``meshodenet.reference``): same
+    #: numbers up to float round-off; not part of the config or the checkpoint.
+    engine = "fast"
 
     def __init__(self, mesh: Mesh, config: MeshODENetConfig, train: Trajectories | None = None,
                  hinges=None):
@@ -153,6 +142,7 @@ class MeshODENet(TrajectoryModel):
             n_node_features(self.kind), EDGE_STATIC + EDGE_DYNAMIC, 3, config.hidden,
             config.layers, config.mlp_hidden_layers, config.activation, layer_norm=False)
         self.nfe = 0
+        self._fast_cache = None
 
     # --- the vector field -------------------------------------------------------------------
     def field_context(self, youngs: torch.Tensor, dtype=None) -> FieldContext:
@@ -161,12 +151,23 @@ class MeshODENet(TrajectoryModel):
 
     def vector_field(self, z: torch.Tensor, ctx: FieldContext) -> torch.Tensor:
         """``dz/dt = [v, a]`` for ``z = [x, v]`` of shape ``(2, M, 3)``; clamped nodes frozen."""
-        b = ctx.batch
-        x, v = z[0], z[1] * b.free
-        node_in, edge_in = ctx.inputs(x, v)
-        a = self.gnn(node_in, edge_in, b.senders, b.receivers)
-        a = (a * ctx.acc_std + ctx.acc_mean) * b.free
-        return torch.stack([v, a])
+        if self.engine == "reference":
+            return reference.vector_field(self, z, ctx)
+        return fast.evaluate(self._fast_field(ctx), z)
+
+    def _fast_field(self, ctx: FieldContext) -> fast.FastField:
+        """The ``FastField`` of ``ctx``; without autograd, the last one is reused until a
+        parameter, a buffer or the context changes (an optimizer step bumps the versions)."""
+        if torch.is_grad_enabled():
+            return fast.FastField(self, ctx)
+        key = (id(ctx), tuple((p.data_ptr(), p.dtype, p._version) for p in self.parameters()),
+               tuple(b._version for b in self.buffers()))
+        cached = self._fast_cache
+        if cached is None or cached[0] is not ctx or cached[1] != key:
+            with torch.no_grad():
+                cached = (ctx, key, fast.FastField(self, ctx))
+            self._fast_cache = cached
+        return cached[2]
 
     def forward(self, z: torch.Tensor, ctx: FieldContext) -> torch.Tensor:
         """The vector field (``vector_field``), so that ``torch.func`` can call the model."""
@@ -176,9 +177,15 @@ class MeshODENet(TrajectoryModel):
         """``z`` at times ``t``: ``(T, 2, M, 3)``, with the configured integrator and gradient
         mode (the gradient mode only matters when autograd is recording)."""
         c = self.config
-        return odesolve(_BoundField(self, ctx), z0, t, c.integrator, c.grad_mode, c.substeps,
-                        checkpoint_every=c.checkpoint_every, seminorm=c.seminorm,
-                        params=tuple(self.parameters()), **c.tolerances)
+        if self.engine == "reference":
+            return reference.integrate(self, z0, t, ctx)
+        scheme = INTEGRATORS[c.integrator]
+        if scheme.adaptive or (c.grad_mode == "adjoint" and torch.is_grad_enabled()):
+            return reference.integrate(self, z0, t, ctx, field=MeshODENet.vector_field)
+        field = self._fast_field(ctx)
+        self.nfe += len(scheme.b) * c.substeps * (len(t) - 1) * (2 if torch.is_grad_enabled()
+                                                                   else 1)
+        return fast.rollout(field, scheme, z0, t, c.substeps)
 
     # --- TrajectoryModel ----------------------------------------------------------------------
     def rollout(self, x0, v0, youngs, t):

@@ -181,7 +181,6 @@ def _bench_arrays(case, n: int, frames: int, data_dir):
 
 def _measure(mode: str, p: dict) -> dict:
     """Child process: one (possibly partial) epoch of MeshODENet training in ``mode``."""
-    import resource
     import time
 
     import torch
@@ -207,14 +206,16 @@ def _measure(mode: str, p: dict) -> dict:
     timed = n_batches if p["max_batches"] == 0 else min(p["max_batches"], n_batches)
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats()
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    base = __import__("benchmarks.enginebench").enginebench._rss_gb() * 1024**2
     model.nfe = 0
     t0 = time.perf_counter()
     train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(0), max_batches=timed)
     if dev.type == "cuda":
         torch.cuda.synchronize()
     wall = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    from benchmarks.enginebench import _peak_gb
+
+    peak = _peak_gb() * 1024**2  # VmHWM: ru_maxrss would include the spawning parent's peak
     steps = p["frames"] - 1
     evals_per_rollout = steps * {"euler": 1, "midpoint": 2, "rk4": 4}.get(p["integrator"], 0)
     fwd = evals_per_rollout * timed  # evaluations of the forward rollouts themselves
