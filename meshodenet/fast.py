@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import torch
 
-from meshodenet.features import NODE_STATIC
-
 
 # --- activations ------------------------------------------------------------------------------
 def _act_fwd(name: str, pre: torch.Tensor):
@@ -87,56 +85,112 @@ class FastField:
             rot[0, 0] = rot[1, 1] = rot[2, 2] = 1.0
             rot[1, 3], rot[0, 4] = 1.0, -1.0
             self.rot = rot
+        self.model = model
         P: list = []
+        self.sources: list = []  # the module tensors the effective weights are made of
+        maps: list = []  # (source index, fn(G) -> its gradient)
 
         def add(t):
             P.append(t)
             return len(P) - 1
 
-        def mlp(seq, first=None, last=None):
+        def src(t):
+            self.sources.append(t)
+            return len(self.sources) - 1
+
+        def plain(lin):
+            w, b = add(lin.weight.detach().t()), add(lin.bias.detach())
+            maps.append((src(lin.weight), lambda G, w=w: G[w].t()))
+            maps.append((src(lin.bias), lambda G, b=b: G[b]))
+            return w, b
+
+        def encoder(seq, static):
+            """First layer on ``[static | dynamic]``: ``W_d f + c``, ``c = W_s static + b``."""
             lins = _linears(seq)
-            out = []
-            for k, lin in enumerate(lins):
-                W, bias = lin.weight, lin.bias
-                if k == 0 and first is not None:
-                    W, bias = first(W, bias)
-                    out.append((add(W), add(bias)))
-                    continue
-                if k == len(lins) - 1 and last is not None:
-                    W, bias = last(W, bias)
-                    out.append((add(W), add(bias)))
-                    continue
-                out.append((add(W.t()), add(bias)))
-            return out
+            n = static.shape[1]
+            W, bias = lins[0].weight.detach(), lins[0].bias.detach()
+            w, c = add(W[:, n:].t()), add(torch.addmm(bias, static, W[:, :n].t()))
+            maps.append((src(lins[0].weight),
+                         lambda G: torch.cat([G[c].t() @ static, G[w].t()], 1)))
+            maps.append((src(lins[0].bias), lambda G: G[c].sum(0)))
+            return [(w, c)] + [plain(lin) for lin in lins[1:]]
 
-        s = NODE_STATIC[self.kind]
+        def decoder(seq):
+            """Last layer followed by the acceleration de-normalisation ``y s + m``."""
+            lins = _linears(seq)
+            out = [plain(lin) for lin in lins[:-1]]
+            s_, m_ = ctx.acc_std, ctx.acc_mean
+            W, bias = lins[-1].weight.detach(), lins[-1].bias.detach()
+            w, b = add((W * s_[:, None]).t()), add(bias * s_ + m_)
+            maps.append((src(lins[-1].weight), lambda G: G[w].t() * s_[:, None]))
+            maps.append((src(lins[-1].bias), lambda G: G[b] * s_))
+            return out + [(w, b)]
 
-        def fold(static, n_static):
-            def first(W, bias):
-                return W[:, n_static:].t(), static @ W[:, :n_static].t() + bias
-            return first
-
-        def dec_last(W, bias):
-            return (W * ctx.acc_std[:, None]).t(), bias * ctx.acc_std + ctx.acc_mean
-
-        self.node_enc = mlp(gnn.node_encoder, fold(ctx.node_static, s))
-        self.edge_enc = mlp(gnn.edge_encoder, fold(ctx.edge_static, ctx.edge_static.shape[1]))
         self.node_mean, self.node_std = ctx.node_mean, ctx.node_std
         self.edge_mean, self.edge_std = ctx.edge_mean, ctx.edge_std
-        self.layers = []
-        for layer in gnn.processor:
-            el, nl = _linears(layer.edge_mlp), _linears(layer.node_mlp)
-            d = el[0].weight.shape[0]
-            W1, b1 = el[0].weight, el[0].bias
-            e_first = (add(W1[:, :d].t()), add(torch.cat([W1[:, d:2 * d], W1[:, 2 * d:]]).t()),
-                       add(torch.cat([b1, torch.zeros_like(b1)])))
-            Wn = nl[0].weight
-            n_first = (add(Wn[:, :d].t()), add(Wn[:, d:].t()), add(nl[0].bias))
-            rest_e = [(add(m.weight.t()), add(m.bias)) for m in el[1:]]
-            rest_n = [(add(m.weight.t()), add(m.bias)) for m in nl[1:]]
-            self.layers.append((e_first, rest_e, n_first, rest_n, d))
-        self.decoder = mlp(gnn.decoder, last=dec_last)
-        self.params = P
+        with torch.no_grad():
+            self.node_enc = encoder(gnn.node_encoder, ctx.node_static)
+            self.edge_enc = encoder(gnn.edge_encoder, ctx.edge_static)
+            self.layers = []
+            for layer in gnn.processor:
+                el, nl = _linears(layer.edge_mlp), _linears(layer.node_mlp)
+                d = el[0].weight.shape[0]
+                W1, b1 = el[0].weight.detach(), el[0].bias.detach()
+                we, wsr = add(W1[:, :d].t()), add(torch.cat([W1[:, d:2 * d], W1[:, 2 * d:]]).t())
+                bsr = add(torch.cat([b1, torch.zeros_like(b1)]))
+                maps.append((src(el[0].weight), lambda G, we=we, wsr=wsr, d=d: torch.cat(
+                    [G[we].t(), G[wsr].t()[:d], G[wsr].t()[d:]], 1)))
+                maps.append((src(el[0].bias), lambda G, bsr=bsr, d=d: G[bsr][:d]))
+                Wn = nl[0].weight.detach()
+                wh, wa, bn = add(Wn[:, :d].t()), add(Wn[:, d:].t()), add(nl[0].bias.detach())
+                maps.append((src(nl[0].weight),
+                             lambda G, wh=wh, wa=wa: torch.cat([G[wh].t(), G[wa].t()], 1)))
+                maps.append((src(nl[0].bias), lambda G, bn=bn: G[bn]))
+                rest_e = [plain(m) for m in el[1:]]
+                rest_n = [plain(m) for m in nl[1:]]
+                self.layers.append(((we, wsr, bsr), rest_e, (wh, wa, bn), rest_n, d))
+            self.decoder = decoder(gnn.decoder)
+            self.params = P
+            self.PT = [p.t() if p.dim() == 2 else None for p in P]
+        self._maps = maps
+        self._pending: dict = {}
+
+    def requires_grad(self) -> bool:
+        return any(t.requires_grad for t in self.sources)
+
+    def new_grads(self) -> list:
+        return [torch.zeros_like(p) for p in self.params]
+
+    def source_grads(self, G) -> list:
+        """Gradients of ``sources`` from those of the effective weights ``G``."""
+        self.flush(G)
+        out = [None] * len(self.sources)
+        for i, fn in self._maps:
+            out[i] = fn(G)
+        return out
+
+    def _wgrad(self, w, b, x, g) -> None:
+        """Defer ``G[w] += x^T g`` (and ``G[b] += sum g``): ``flush`` does them as one matmul
+        per weight over many evaluations, which runs nearer the machine's peak than many
+        matmuls with a short inner dimension."""
+        entry = self._pending.get(w)
+        if entry is None:
+            self._pending[w] = (b, [x], [g])
+        else:
+            entry[1].append(x)
+            entry[2].append(g)
+
+    def flush(self, G) -> None:
+        for w, (b, xs, gs) in self._pending.items():
+            X = xs[0] if len(xs) == 1 else torch.cat(xs)
+            Gm = gs[0] if len(gs) == 1 else torch.cat(gs)
+            G[w].addmm_(X.t(), Gm)
+            if b is not None:
+                if G[b].dim() == 1:
+                    G[b].add_(Gm.sum(0))
+                else:
+                    G[b].add_(Gm.view(len(gs), -1, Gm.shape[1]).sum(0))
+        self._pending = {}
 
     # --- forward ----------------------------------------------------------------------------
     def _mlp_fwd(self, P, layers, x, pre0, tape):
@@ -189,6 +243,7 @@ class FastField:
     def forward(self, P, z, tape=None):
         """``dz/dt`` ``(2, M, 3)`` for ``z = [x, v]``; when ``tape`` (a list) is given, what the
         backward pass needs is appended to it."""
+        self.model.nfe += 1
         x, v = z[0], z[1]
         vf = v * self.free
         F, Fe = self._features(x, vf, tape)
@@ -224,13 +279,8 @@ class FastField:
             if k == 0 and first_given:
                 return g
             w, b = layers[k]
-            x = tape.pop()
-            G[w].addmm_(x.t(), g)
-            if G[b].dim() == 1:
-                G[b].add_(g.sum(0))
-            else:
-                G[b].add_(g)
-            g = torch.mm(g, P[w].t())
+            self._wgrad(w, b, tape.pop(), g)
+            g = torch.mm(g, self.PT[w])
         return g
 
     def backward(self, P, G, tape, gz):
@@ -246,10 +296,9 @@ class FastField:
             g_pre = self._mlp_bwd(P, G, [(None, None)] + rest_n, tape, g_h, True)
             agg = tape.pop()
             wh, wa, bn = n_first
-            G[wa].addmm_(agg.t(), g_pre)
-            G[bn].add_(g_pre.sum(0))
-            g_agg = torch.mm(g_pre, P[wa].t())
-            g_hin = g_h + torch.mm(g_pre, P[wh].t())
+            self._wgrad(wa, bn, agg, g_pre)
+            g_agg = torch.mm(g_pre, self.PT[wa])
+            g_hin = torch.addmm(g_h, g_pre, self.PT[wh])
             g_pre_n = g_pre
             # e_out = e_in + m; agg = scatter(e_out); gradient of e_out:
             g_eout = g_agg.index_select(0, self.receivers)
@@ -257,15 +306,14 @@ class FastField:
                 g_eout = g_eout + g_e
             g_pre = self._mlp_bwd(P, G, [(None, None)] + rest_e, tape, g_eout, True)
             e_in, h_in = tape.pop(), tape.pop()
-            G[wh].addmm_(h_in.t(), g_pre_n)
+            self._wgrad(wh, None, h_in, g_pre_n)
             we, wsr, bsr = e_first
-            G[we].addmm_(e_in.t(), g_pre)
-            g_e = g_eout + torch.mm(g_pre, P[we].t())
+            self._wgrad(we, None, e_in, g_pre)
+            g_e = torch.addmm(g_eout, g_pre, self.PT[we])
             g_hsr = g_pre.new_zeros(2 * M, d).index_add_(
                 0, self.idx_sr, g_pre.unsqueeze(0).expand(2, -1, -1).reshape(-1, d)).view(M, 2 * d)
-            G[wsr].addmm_(h_in.t(), g_hsr)
-            G[bsr].add_(g_hsr.sum(0))
-            g_h = g_hin + torch.mm(g_hsr, P[wsr].t())
+            self._wgrad(wsr, bsr, h_in, g_hsr)
+            g_h = torch.addmm(g_hin, g_hsr, self.PT[wsr])
         if g_e is None:
             g_e = torch.zeros(self.D, P[self.edge_enc[-1][0]].shape[1], dtype=gz.dtype,
                               device=gz.device)
@@ -307,65 +355,77 @@ class FastField:
 
 
 # --- autograd wrappers ------------------------------------------------------------------------
+#: A training rollout keeps the activations of every evaluation (no recomputation in the
+#: backward pass) when they take at most this many bytes; otherwise it keeps the state at every
+#: saved time and recomputes one interval at a time. The gradient is the same either way.
+TAPE_BUDGET_BYTES = 384 * 2**20
+#: Intervals whose deferred weight-gradient products are summed in one matmul.
+FLUSH_EVERY = 8
+
+
+def _tape_bytes(tapes) -> int:
+    seen, total = set(), 0
+    for tape in tapes:
+        for t in tape:
+            if id(t) not in seen:
+                seen.add(id(t))
+                total += t.numel() * t.element_size()
+    return total
+
+
 class _FieldFn(torch.autograd.Function):
     """One evaluation ``f(z)`` with the hand-written backward."""
 
     @staticmethod
-    def forward(ctx, field, z, *P):
+    def forward(ctx, field, z, *sources):
         tape: list = []
-        out = field.forward(P, z, tape)
+        out = field.forward(field.params, z, tape)
         ctx.field, ctx.tape = field, tape
-        ctx.save_for_backward(*P)
         return out
 
     @staticmethod
     def backward(ctx, g):
-        P = ctx.saved_tensors
-        G = [torch.zeros_like(p) for p in P]
-        gz = ctx.field.backward(P, G, list(ctx.tape), g.contiguous())
-        return (None, gz, *G)
+        field = ctx.field
+        G = field.new_grads()
+        gz = field.backward(field.params, G, list(ctx.tape), g.contiguous())
+        return (None, gz, *field.source_grads(G))
 
 
 def evaluate(field: FastField, z: torch.Tensor) -> torch.Tensor:
     """``f(z)``, differentiable w.r.t. ``z`` and the parameters when autograd records."""
-    if torch.is_grad_enabled() and (z.requires_grad or any(p.requires_grad
-                                                           for p in field.params)):
-        return _FieldFn.apply(field, z, *field.params)
+    if torch.is_grad_enabled() and (z.requires_grad or field.requires_grad()):
+        return _FieldFn.apply(field, z, *field.sources)
     with torch.no_grad():
         return field.forward(field.params, z)
 
 
-def _rk_forward(field, P, scheme, z, h):
-    """One explicit Runge-Kutta step without a tape."""
+def _rk_step(field, P, scheme, z, h, tapes=None):
+    """One explicit Runge-Kutta step (as ``ExplicitRK.step``); with ``tapes`` (a list), each
+    stage's tape is appended to it."""
     ks = []
     for a in scheme.a:
         zs = z
         for a_r, k in zip(a, ks, strict=True):
             if a_r:
                 zs = zs + (h * a_r) * k
-        ks.append(field.forward(P, zs))
-    dz = None
+        if tapes is None:
+            ks.append(field.forward(P, zs))
+        else:
+            tape: list = []
+            ks.append(field.forward(P, zs, tape))
+            tapes.append(tape)
+    dz = 0
     for b, k in zip(scheme.b, ks, strict=True):
         if b:
-            dz = b * k if dz is None else dz + b * k
+            dz = dz + b * k
     return z + h * dz
 
 
-def _rk_backward(field, P, G, scheme, z, h, gz_next):
-    """Recompute one step from ``z`` with tapes and return the gradient w.r.t. ``z``."""
-    ks, tapes = [], []
-    for a in scheme.a:
-        zs = z
-        for a_r, k in zip(a, ks, strict=True):
-            if a_r:
-                zs = zs + (h * a_r) * k
-        tape: list = []
-        ks.append(field.forward(P, zs, tape))
-        tapes.append(tape)
-    S = len(ks)
+def _rk_vjp(field, P, G, scheme, tapes, h, gz_next):
+    """Gradient w.r.t. the start of one step from that w.r.t. its end (consumes ``tapes``)."""
     g_k = [gz_next * (h * b) if b else None for b in scheme.b]
     gz = gz_next.clone()
-    for s in range(S - 1, -1, -1):
+    for s in range(len(g_k) - 1, -1, -1):
         if g_k[s] is None:
             continue
         g_zs = field.backward(P, G, tapes[s], g_k[s])
@@ -377,59 +437,78 @@ def _rk_backward(field, P, G, scheme, z, h, gz_next):
     return gz
 
 
+def _steps(t, substeps):
+    return [(t[k + 1] - t[k]) / substeps for k in range(len(t) - 1)]
+
+
+def _solve(field, scheme, z0, t, substeps, keep_tapes=False):
+    """States ``(T, ...)`` at ``t`` and, when ``keep_tapes`` and they fit in
+    ``TAPE_BUDGET_BYTES``, the tapes of every step (else ``None``)."""
+    P = field.params
+    zs, z = [z0], z0
+    steps = _steps(t, substeps)
+    n_steps = len(steps) * substeps
+    kept = [] if keep_tapes else None
+    for h in steps:
+        for _ in range(substeps):
+            if kept is None:
+                z = _rk_step(field, P, scheme, z, h)
+                continue
+            tapes: list = []
+            z = _rk_step(field, P, scheme, z, h, tapes)
+            kept.append(tapes)
+            if len(kept) == 1 and _tape_bytes(tapes) * n_steps > TAPE_BUDGET_BYTES:
+                kept = None
+        zs.append(z)
+    return torch.stack(zs), kept
+
+
 class _RolloutFn(torch.autograd.Function):
-    """A fixed-step rollout ``(T, 2, M, 3)``: forward without a graph, keeping the states at
-    the saved times; backward recomputes each interval with tapes."""
+    """A fixed-step rollout ``(T, 2, M, 3)``: forward without an autograd graph, keeping the
+    states at the saved times (and the activations when they fit); backward walks the steps in
+    reverse with the hand-written vector-Jacobian products."""
 
     @staticmethod
-    def forward(ctx, field, scheme, t, substeps, z0, *P):
-        zs = [z0]
-        z = z0
-        hs = []
-        for k in range(len(t) - 1):
-            h = float((t[k + 1] - t[k]) / substeps)
-            hs.append(h)
-            for _ in range(substeps):
-                z = _rk_forward(field, P, scheme, z, h)
-            zs.append(z)
-        out = torch.stack(zs)
-        ctx.field, ctx.scheme, ctx.hs, ctx.substeps = field, scheme, hs, substeps
-        ctx.save_for_backward(out, *P)
+    def forward(ctx, field, scheme, t, substeps, z0, *sources):
+        out, kept = _solve(field, scheme, z0, t, substeps, keep_tapes=True)
+        ctx.field, ctx.scheme, ctx.t, ctx.substeps, ctx.kept = field, scheme, t, substeps, kept
+        ctx.save_for_backward(out)
         return out
 
     @staticmethod
     def backward(ctx, g_out):
-        out, *P = ctx.saved_tensors
-        field, scheme, substeps = ctx.field, ctx.scheme, ctx.substeps
-        G = [torch.zeros_like(p) for p in P]
+        (out,) = ctx.saved_tensors
+        field, scheme, substeps, kept = ctx.field, ctx.scheme, ctx.substeps, ctx.kept
+        ctx.kept = None
+        P = field.params
+        G = field.new_grads()
+        steps = _steps(ctx.t, substeps)
         gz = g_out[-1].clone()
-        for k in range(len(ctx.hs) - 1, -1, -1):
-            h = ctx.hs[k]
-            if substeps == 1:
-                gz = _rk_backward(field, P, G, scheme, out[k], h, gz)
+        for k in range(len(steps) - 1, -1, -1):
+            h = steps[k]
+            if kept is not None:
+                for j in range(substeps - 1, -1, -1):
+                    tapes, kept[k * substeps + j] = kept[k * substeps + j], None
+                    gz = _rk_vjp(field, P, G, scheme, tapes, h, gz)
             else:
                 subs = [out[k]]
                 for _ in range(substeps - 1):
-                    subs.append(_rk_forward(field, P, scheme, subs[-1], h))
+                    subs.append(_rk_step(field, P, scheme, subs[-1], h))
                 for zk in reversed(subs):
-                    gz = _rk_backward(field, P, G, scheme, zk, h, gz)
+                    tapes: list = []
+                    _rk_step(field, P, scheme, zk, h, tapes)
+                    gz = _rk_vjp(field, P, G, scheme, tapes, h, gz)
             gz = gz + g_out[k]
-        return (None, None, None, None, gz, *G)
+            if k % FLUSH_EVERY == 0:
+                field.flush(G)
+        return (None, None, None, None, gz, *field.source_grads(G))
 
 
 def rollout(field: FastField, scheme, z0: torch.Tensor, t: torch.Tensor,
             substeps: int = 1) -> torch.Tensor:
     """States ``(T, 2, M, 3)`` at times ``t`` of the fixed-step ``scheme``
     (``meshodenet.integrators.ExplicitRK``), differentiable when autograd records."""
-    if torch.is_grad_enabled() and (z0.requires_grad or any(p.requires_grad
-                                                            for p in field.params)):
-        return _RolloutFn.apply(field, scheme, t, substeps, z0, *field.params)
+    if torch.is_grad_enabled() and (z0.requires_grad or field.requires_grad()):
+        return _RolloutFn.apply(field, scheme, t, substeps, z0, *field.sources)
     with torch.no_grad():
-        return _RolloutFn.forward(_NoCtx(), field, scheme, t, substeps, z0, *field.params)
-
-
-class _NoCtx:
-    """A stand-in for the autograd context when no gradient is recorded."""
-
-    def save_for_backward(self, *a):
-        pass
+        return _solve(field, scheme, z0, t, substeps)[0]

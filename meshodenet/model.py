@@ -156,16 +156,12 @@ class MeshODENet(TrajectoryModel):
         return fast.evaluate(self._fast_field(ctx), z)
 
     def _fast_field(self, ctx: FieldContext) -> fast.FastField:
-        """The ``FastField`` of ``ctx``; without autograd, the last one is reused until a
-        parameter, a buffer or the context changes (an optimizer step bumps the versions)."""
-        if torch.is_grad_enabled():
-            return fast.FastField(self, ctx)
-        key = (id(ctx), tuple((p.data_ptr(), p.dtype, p._version) for p in self.parameters()),
-               tuple(b._version for b in self.buffers()))
+        """The ``FastField`` of ``ctx``; the last one is reused until a parameter or the context
+        changes (an optimizer step bumps the parameters' versions)."""
+        key = tuple((id(p), p.data_ptr(), p.dtype, p._version) for p in self.gnn.parameters())
         cached = self._fast_cache
         if cached is None or cached[0] is not ctx or cached[1] != key:
-            with torch.no_grad():
-                cached = (ctx, key, fast.FastField(self, ctx))
+            cached = (ctx, key, fast.FastField(self, ctx))
             self._fast_cache = cached
         return cached[2]
 
@@ -182,10 +178,7 @@ class MeshODENet(TrajectoryModel):
         scheme = INTEGRATORS[c.integrator]
         if scheme.adaptive or (c.grad_mode == "adjoint" and torch.is_grad_enabled()):
             return reference.integrate(self, z0, t, ctx, field=MeshODENet.vector_field)
-        field = self._fast_field(ctx)
-        self.nfe += len(scheme.b) * c.substeps * (len(t) - 1) * (2 if torch.is_grad_enabled()
-                                                                   else 1)
-        return fast.rollout(field, scheme, z0, t, c.substeps)
+        return fast.rollout(self._fast_field(ctx), scheme, z0, t, c.substeps)
 
     # --- TrajectoryModel ----------------------------------------------------------------------
     def rollout(self, x0, v0, youngs, t):
