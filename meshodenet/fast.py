@@ -360,7 +360,7 @@ class FastField:
 #: saved time and recomputes one interval at a time. The gradient is the same either way.
 TAPE_BUDGET_BYTES = 384 * 2**20
 #: Intervals whose deferred weight-gradient products are summed in one matmul.
-FLUSH_EVERY = 8
+FLUSH_EVERY = 4
 
 
 def _tape_bytes(tapes) -> int:
@@ -512,3 +512,81 @@ def rollout(field: FastField, scheme, z0: torch.Tensor, t: torch.Tensor,
         return _RolloutFn.apply(field, scheme, t, substeps, z0, *field.sources)
     with torch.no_grad():
         return _solve(field, scheme, z0, t, substeps)[0]
+
+
+# --- MeshGraphNet: the same network changes, with autograd ---------------------------------------
+class FastGNN:
+    """``EncodeProcessDecode`` with ``GraphNetBlock``s (MeshGraphNet) on one ``GraphContext``,
+    evaluated with autograd (its one-step training needs few evaluations of large batches, so
+    the backward pass is left to autograd) but with the changes of ``FastField``: the
+    normalised static features folded into the encoders' first layers, split weight matrices
+    instead of the concatenations ``[e, h_i, h_j]`` and ``[h, sum m]`` (the sender and receiver
+    parts computed on the nodes and gathered with one index). Same numbers as the module path
+    up to float round-off (``tests/test_fast.py``). Build it once per context and set of
+    parameter values; its weights are differentiable functions of the module's parameters."""
+
+    def __init__(self, gnn, ctx):
+        b = ctx.batch
+        self.M = b.n_nodes
+        self.receivers = b.receivers
+        self.idx_sr = torch.cat([2 * b.senders, 2 * b.receivers + 1])
+        self.node_mean, self.node_std = ctx.node_mean, ctx.node_std
+        self.edge_mean, self.edge_std = ctx.edge_mean, ctx.edge_std
+        self.node_enc = self._mlp(gnn.node_encoder, ctx.node_static)
+        self.edge_enc = self._mlp(gnn.edge_encoder, ctx.edge_static)
+        self.blocks = []
+        for blk in gnn.processor:
+            (W1, b1), *rest_e = self._mlp(blk.edge_mlp)[0]
+            d = W1.shape[1]
+            W1 = W1.t()  # (out, 3d) of the module
+            first_e = (W1[:, :d].t(), torch.cat([W1[:, d:2 * d], W1[:, 2 * d:]]).t(),
+                       torch.cat([b1, torch.zeros_like(b1)]))
+            (Wn, bn), *rest_n = self._mlp(blk.node_mlp)[0]
+            Wn = Wn.t()
+            first_n = (Wn[:, :d].t(), Wn[:, d:].t(), bn)
+            self.blocks.append((first_e, rest_e, self._mlp(blk.edge_mlp)[1], first_n, rest_n,
+                                self._mlp(blk.node_mlp)[1], d))
+        self.decoder = self._mlp(gnn.decoder)
+        self.act = next((m for m in gnn.decoder if not isinstance(m, (torch.nn.Linear,
+                                                                      torch.nn.LayerNorm))),
+                        torch.nn.Identity())
+
+    @staticmethod
+    def _mlp(seq, static=None):
+        """``([(W^T, b), ...], layer_norm or None)``; with ``static``, the first layer acts on
+        the dynamic features only, with the per-row bias ``W_s static + b``."""
+        lins = _linears(seq)
+        layers = [(m.weight.t(), m.bias) for m in lins]
+        if static is not None:
+            n = static.shape[1]
+            W, bias = lins[0].weight, lins[0].bias
+            layers[0] = (W[:, n:].t(), torch.addmm(bias, static, W[:, :n].t()))
+        ln = seq[-1] if isinstance(seq[-1], torch.nn.LayerNorm) else None
+        return layers, ln
+
+    def _run(self, mlp, x, pre=None):
+        layers, ln = mlp
+        for k, (Wt, bias) in enumerate(layers):
+            if k > 0 or pre is None:
+                pre = torch.addmm(bias, x, Wt)
+            x = self.act(pre) if k < len(layers) - 1 else pre
+        if ln is not None:
+            x = torch.nn.functional.layer_norm(x, ln.normalized_shape, ln.weight, ln.bias,
+                                               ln.eps)
+        return x
+
+    def __call__(self, node_dyn, edge_dyn):
+        """Decoder output ``(M, d_out)`` from the raw dynamic node and edge features."""
+        h = self._run(self.node_enc, (node_dyn - self.node_mean) / self.node_std)
+        e = self._run(self.edge_enc, (edge_dyn - self.edge_mean) / self.edge_std)
+        M = self.M
+        for (we, wsr, bsr), rest_e, ln_e, (wh, wa, bn), rest_n, ln_n, d in self.blocks:
+            g = torch.addmm(bsr, h, wsr).view(2 * M, d).index_select(0, self.idx_sr)
+            g = g.view(2, -1, d)
+            first = [(None, None)] + rest_e
+            m = self._run((first, ln_e), None, torch.addmm(g[0] + g[1], e, we))
+            agg = m.new_zeros(M, d).index_add_(0, self.receivers, m)
+            pre = torch.addmm(torch.addmm(bn, h, wh), agg, wa)
+            h = h + self._run(([(None, None)] + rest_n, ln_n), None, pre)
+            e = e + m
+        return self._run(self.decoder, h)

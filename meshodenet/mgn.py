@@ -41,12 +41,15 @@ from dataclasses import dataclass, replace
 import torch
 from torch import nn
 
+from meshodenet import fast
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import (
     EDGE_DYNAMIC,
     EDGE_STATIC,
     FeatureStats,
     GraphContext,
+    dynamic_edge_features,
+    dynamic_node_features,
     graph_context,
     n_node_features,
 )
@@ -168,6 +171,9 @@ class MeshGraphNet(TrajectoryModel):
     """
 
     name = "mgn"
+    #: ``"fast"`` (``meshodenet.fast.FastGNN``: split weights, static features folded) or
+    #: ``"reference"`` (the modules' own forward): same numbers up to float round-off.
+    engine = "fast"
 
     def __init__(self, mesh: Mesh, config: MeshGraphNetConfig, train: Trajectories | None = None,
                  hinges=None):
@@ -184,6 +190,7 @@ class MeshGraphNet(TrajectoryModel):
                                     config.hidden, config.layers, config.mlp_hidden_layers,
                                     config.activation)
         self.diverged: dict = {}
+        self._fast_cache = None
 
     @torch.no_grad()
     def _compute_stats(self, train: Trajectories) -> None:
@@ -207,8 +214,23 @@ class MeshGraphNet(TrajectoryModel):
         ``k`` and ``k - 1``."""
         b = ctx.batch
         v = (x - x_prev) / ctx.dt * b.free
-        node_in, edge_in = ctx.inputs(x, v)
-        return self.gnn(node_in, edge_in, b.senders, b.receivers)
+        if self.engine == "reference":
+            node_in, edge_in = ctx.inputs(x, v)
+            return self.gnn(node_in, edge_in, b.senders, b.receivers)
+        return self._fast_gnn(ctx)(dynamic_node_features(x, v, b, ctx.kind),
+                                   dynamic_edge_features(x, b))
+
+    def _fast_gnn(self, ctx: StepContext) -> fast.FastGNN:
+        """``fast.FastGNN`` of ``ctx``: built per call when autograd records (its weights are
+        part of the graph), else reused until a parameter or the context changes."""
+        if torch.is_grad_enabled():
+            return fast.FastGNN(self.gnn, ctx)
+        key = tuple((id(p), p.data_ptr(), p.dtype, p._version) for p in self.gnn.parameters())
+        cached = self._fast_cache
+        if cached is None or cached[0] is not ctx or cached[1] != key:
+            cached = (ctx, key, fast.FastGNN(self.gnn, ctx))
+            self._fast_cache = cached
+        return cached[2]
 
     def step(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext) -> torch.Tensor:
         """Positions of frame ``k + 1``: ``2 x - x_prev + a dt^2``, clamped nodes held."""
