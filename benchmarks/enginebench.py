@@ -3,7 +3,8 @@
 Per graph (one rod; 8 and 71 rods batched; the plate of the registered ``plate_cantilever``
 case, taken from the case at run time) and per regime:
 
-- ``nograd``: one vector-field evaluation without autograd (rollouts, validation);
+- ``nograd``: one vector-field evaluation without autograd (rollouts, validation), as the
+  rollouts call it (``MeshODENet.field_fn``: what does not depend on the state built once);
 - ``fwdbwd``: one evaluation and its backward pass (vector-Jacobian product);
 - ``train``: a whole-trajectory RK4 training step (``training_loss`` over a rollout of
   ``--train-intervals`` intervals from the initial state, then ``backward``), counted as
@@ -17,7 +18,7 @@ the plate (hidden 128, batch 1, whole rollouts, ``checkpoint`` gradients; estima
 ``--epoch-steps`` optimizer steps times the steps per epoch, validation excluded) with its peak
 memory, and the time per trajectory of a rollout of the paper-size surrogate against the DER /
 DEP solver on the same initial states and moduli (the case's test moduli), one at a time and
-batched.
+batched. MeshGraphNet at its ``quick`` preset: time of one training step and of one rollout.
 
 FLOP count (stated, not measured): ``2 * rows * in * out`` per linear layer of the reference
 architecture (edge MLP on the concatenation ``[e, h_i, h_j]``, node MLP on ``[h, sum e]``),
@@ -137,6 +138,9 @@ class Regime:
             self.evals = 4 * train_intervals
             return
         self.ctx = m.field_context(self.data.youngs[:n])
+        # the field as rollouts evaluate it (static parts built once); older code: vector_field
+        self.f = m.field_fn(self.ctx) if hasattr(m, "field_fn") else \
+            (lambda z: m.vector_field(z, self.ctx))
         x0 = self.data.pos[:n, 1].reshape(-1, 3)
         v0 = self.data.vel[:n, 1].reshape(-1, 3)
         self.z = torch.stack([x0, v0])
@@ -150,12 +154,12 @@ class Regime:
         if self.regime == "nograd":
             with torch.no_grad():
                 for _ in range(reps):
-                    m.vector_field(self.z, self.ctx)
+                    self.f(self.z)
         elif self.regime == "fwdbwd":
             z = self.z.clone().requires_grad_(True)
             for _ in range(reps):
                 m.zero_grad(set_to_none=True)
-                (m.vector_field(z, self.ctx) * self.w).sum().backward()
+                (self.f(z) * self.w).sum().backward()
         else:
             for _ in range(reps):
                 m.zero_grad(set_to_none=True)
@@ -279,7 +283,7 @@ def _spawn(fn, *args):
 
 def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, train_intervals=20,
               epoch_steps=2, memory=True, epochs=True, solver=True, solver_trajectories=2,
-              log=print) -> dict:
+              mgn=True, log=print) -> dict:
     import torch
 
     torch.set_num_threads(threads)
@@ -356,7 +360,60 @@ def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, trai
                     f"(mean of {s['trajectories']}); rollout {r['single_s']:.3f} s alone "
                     f"({r['speedup_single']:.1f}x), {r['batched_per_trajectory_s']:.4f} s per "
                     f"trajectory batched by {r['batch']} ({r['speedup_batched']:.1f}x)")
+    if mgn:
+        out["mgn"] = {c: mgn_bench(c, impls, log=log) for c in PAPER_CASES}
     out["finished"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    return out
+
+
+def mgn_bench(case_id: str, impls, rounds: int = 3, log=print) -> dict:
+    """MeshGraphNet at its ``quick`` preset: one optimizer-step's loss and backward on a batch of
+    frames, and a no-grad rollout of one whole trajectory, per implementation, interleaved."""
+    import torch
+
+    from benchmarks.registry import get_case
+    from meshodenet.data import Mesh, Trajectories
+    from meshodenet.mgn import MeshGraphNet, mgn_presets
+
+    case = get_case(case_id)
+    arrays, _ = _arrays(case_id, 2, case.n_frames)
+    data = Trajectories.from_arrays(arrays)
+    mesh = Mesh.from_arrays(arrays)
+    tcfg, mcfg = mgn_presets("quick", mesh.kind)
+    models = {}
+    for i in impls:
+        torch.manual_seed(0)
+        models[i] = MeshGraphNet(mesh, mcfg, data)
+        _set_impl(models[i], i)
+    samples = torch.randperm(models[impls[0]].n_training_samples(data),
+                             generator=torch.Generator().manual_seed(0))[:tcfg.batch_size]
+
+    def step(m):
+        m.zero_grad(set_to_none=True)
+        m.training_loss(data, samples).backward()
+
+    def roll(m):
+        with torch.no_grad():
+            m.rollout(data.pos[:1, 0], data.vel[:1, 0], data.youngs[:1], data.t)
+
+    times = {i: {"step": [], "rollout": []} for i in impls}
+    for m in models.values():
+        step(m)
+    for _ in range(rounds):
+        for i, m in models.items():
+            t0 = time.perf_counter()
+            step(m)
+            times[i]["step"].append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            roll(m)
+            times[i]["rollout"].append(time.perf_counter() - t0)
+    out = {"hidden": mcfg.hidden, "layers": mcfg.layers, "batch_frames": tcfg.batch_size,
+           "rollout_frames": case.n_frames}
+    for i in impls:
+        out[i] = {"step_s": min(times[i]["step"]), "rollout_s": min(times[i]["rollout"])}
+        log(f"mgn {case_id} [{i}] (quick preset: hidden {mcfg.hidden}, {mcfg.layers} blocks): "
+            f"training step of {tcfg.batch_size} frames {out[i]['step_s'] * 1e3:.0f} ms, "
+            f"rollout of {case.n_frames} frames {out[i]['rollout_s']:.2f} s")
     return out
 
 
@@ -409,6 +466,15 @@ def compare(new: dict, base: dict, base_impl: str | None = None) -> list[str]:
                          f"batched {r['batched_per_trajectory_s']:.4f} vs "
                          f"{bv['batched_per_trajectory_s']:.4f} s/trajectory "
                          f"(x{bv['batched_per_trajectory_s'] / r['batched_per_trajectory_s']:.2f})")
+    for c, e in new.get("mgn", {}).items():
+        b = base.get("mgn", {}).get(c)
+        if not b:
+            continue
+        bv = pick({k: v for k, v in b.items() if isinstance(v, dict)}, base_impl)
+        for i, r in e.items():
+            if isinstance(r, dict):
+                lines.append(f"mgn {c} {i}: step x{bv['step_s'] / r['step_s']:.2f} faster, "
+                             f"rollout x{bv['rollout_s'] / r['rollout_s']:.2f} faster")
     return lines
 
 

@@ -243,7 +243,6 @@ class FastField:
     def forward(self, P, z, tape=None):
         """``dz/dt`` ``(2, M, 3)`` for ``z = [x, v]``; when ``tape`` (a list) is given, what the
         backward pass needs is appended to it."""
-        self.model.nfe += 1
         x, v = z[0], z[1]
         vf = v * self.free
         F, Fe = self._features(x, vf, tape)
@@ -402,23 +401,24 @@ def evaluate(field: FastField, z: torch.Tensor) -> torch.Tensor:
 def _rk_step(field, P, scheme, z, h, tapes=None):
     """One explicit Runge-Kutta step (as ``ExplicitRK.step``); with ``tapes`` (a list), each
     stage's tape is appended to it."""
+    field.model.nfe += len(scheme.a)
     ks = []
     for a in scheme.a:
         zs = z
         for a_r, k in zip(a, ks, strict=True):
             if a_r:
-                zs = zs + (h * a_r) * k
+                zs = torch.add(zs, k, alpha=h * a_r)
         if tapes is None:
             ks.append(field.forward(P, zs))
         else:
             tape: list = []
             ks.append(field.forward(P, zs, tape))
             tapes.append(tape)
-    dz = 0
+    dz = None
     for b, k in zip(scheme.b, ks, strict=True):
         if b:
-            dz = dz + b * k
-    return z + h * dz
+            dz = k * b if dz is None else torch.add(dz, k, alpha=b)
+    return torch.add(z, dz, alpha=h)
 
 
 def _rk_vjp(field, P, G, scheme, tapes, h, gz_next):
@@ -432,13 +432,15 @@ def _rk_vjp(field, P, G, scheme, tapes, h, gz_next):
         gz.add_(g_zs)
         for r, a_r in enumerate(scheme.a[s]):
             if a_r:
-                upd = g_zs * (h * a_r)
-                g_k[r] = upd if g_k[r] is None else g_k[r] + upd
+                g_k[r] = g_zs * (h * a_r) if g_k[r] is None else g_k[r].add_(g_zs,
+                                                                           alpha=h * a_r)
     return gz
 
 
 def _steps(t, substeps):
-    return [(t[k + 1] - t[k]) / substeps for k in range(len(t) - 1)]
+    """Step sizes as Python floats (the reference forms ``h`` as a 0-dim tensor in the dtype of
+    ``t``: the same value, rounded to that dtype)."""
+    return [float((t[k + 1] - t[k]) / substeps) for k in range(len(t) - 1)]
 
 
 def _solve(field, scheme, z0, t, substeps, keep_tapes=False):

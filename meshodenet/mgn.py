@@ -190,7 +190,7 @@ class MeshGraphNet(TrajectoryModel):
                                     config.hidden, config.layers, config.mlp_hidden_layers,
                                     config.activation)
         self.diverged: dict = {}
-        self._fast_cache = None
+        self._fast_held = None
 
     @torch.no_grad()
     def _compute_stats(self, train: Trajectories) -> None:
@@ -221,16 +221,12 @@ class MeshGraphNet(TrajectoryModel):
                                    dynamic_edge_features(x, b))
 
     def _fast_gnn(self, ctx: StepContext) -> fast.FastGNN:
-        """``fast.FastGNN`` of ``ctx``: built per call when autograd records (its weights are
-        part of the graph), else reused until a parameter or the context changes."""
-        if torch.is_grad_enabled():
-            return fast.FastGNN(self.gnn, ctx)
-        key = tuple((id(p), p.data_ptr(), p.dtype, p._version) for p in self.gnn.parameters())
-        cached = self._fast_cache
-        if cached is None or cached[0] is not ctx or cached[1] != key:
-            cached = (ctx, key, fast.FastGNN(self.gnn, ctx))
-            self._fast_cache = cached
-        return cached[2]
+        """``fast.FastGNN`` of ``ctx``: the one ``rollout`` built for its context (parameters
+        do not change during a rollout), else a new one."""
+        held = self._fast_held
+        if held is not None and held[0] is ctx and not torch.is_grad_enabled():
+            return held[1]
+        return fast.FastGNN(self.gnn, ctx)
 
     def step(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext) -> torch.Tensor:
         """Positions of frame ``k + 1``: ``2 x - x_prev + a dt^2``, clamped nodes held."""
@@ -253,10 +249,18 @@ class MeshGraphNet(TrajectoryModel):
         NaN from frame ``k`` on (graphs of a batch are disjoint, so the others go on), is
         recorded in ``diverged`` and raises a ``RuntimeWarning`` naming the step; the loop
         stops once every trajectory has diverged."""
+        ctx = self.context(youngs, x0.dtype)
+        try:
+            if self.engine == "fast" and not torch.is_grad_enabled():
+                self._fast_held = (ctx, fast.FastGNN(self.gnn, ctx))
+            return self._rollout(x0, v0, t, ctx)
+        finally:
+            self._fast_held = None
+
+    def _rollout(self, x0, v0, t, ctx):
         B, N, _ = x0.shape
         pos = x0.new_full((B, len(t), N, 3), math.nan)
         vel = torch.full_like(pos, math.nan)
-        ctx = self.context(youngs, x0.dtype)
         free = ctx.batch.free
         x = x0.reshape(-1, 3)
         pos[:, 0], vel[:, 0] = x0, (v0.reshape(-1, 3) * free).reshape(B, N, 3)
@@ -286,7 +290,7 @@ class MeshGraphNet(TrajectoryModel):
         warnings.warn(f"MeshGraphNet rollout diverged at step {k} (t = {float(t[k]):.6g} s) of "
                       f"{len(t) - 1}: positions of trajectories {idx} of the batch are not "
                       "finite; their frames from this step on are NaN", RuntimeWarning,
-                      stacklevel=3)
+                      stacklevel=4)
 
     @torch.no_grad()
     def one_step(self, data: Trajectories, batch_size: int = 256) -> torch.Tensor:

@@ -142,7 +142,6 @@ class MeshODENet(TrajectoryModel):
             n_node_features(self.kind), EDGE_STATIC + EDGE_DYNAMIC, 3, config.hidden,
             config.layers, config.mlp_hidden_layers, config.activation, layer_norm=False)
         self.nfe = 0
-        self._fast_cache = None
 
     # --- the vector field -------------------------------------------------------------------
     def field_context(self, youngs: torch.Tensor, dtype=None) -> FieldContext:
@@ -150,20 +149,20 @@ class MeshODENet(TrajectoryModel):
         return graph_context(self.stats, self.topology, youngs, dtype)
 
     def vector_field(self, z: torch.Tensor, ctx: FieldContext) -> torch.Tensor:
-        """``dz/dt = [v, a]`` for ``z = [x, v]`` of shape ``(2, M, 3)``; clamped nodes frozen."""
+        """``dz/dt = [v, a]`` for ``z = [x, v]`` of shape ``(2, M, 3)``; clamped nodes frozen.
+        (Builds the fast path's static parts on every call: to evaluate many times, use
+        ``field_fn``.)"""
         if self.engine == "reference":
             return reference.vector_field(self, z, ctx)
-        return fast.evaluate(self._fast_field(ctx), z)
+        return fast.evaluate(fast.FastField(self, ctx), z)
 
-    def _fast_field(self, ctx: FieldContext) -> fast.FastField:
-        """The ``FastField`` of ``ctx``; the last one is reused until a parameter or the context
-        changes (an optimizer step bumps the parameters' versions)."""
-        key = tuple((id(p), p.data_ptr(), p.dtype, p._version) for p in self.gnn.parameters())
-        cached = self._fast_cache
-        if cached is None or cached[0] is not ctx or cached[1] != key:
-            cached = (ctx, key, fast.FastField(self, ctx))
-            self._fast_cache = cached
-        return cached[2]
+    def field_fn(self, ctx: FieldContext):
+        """``z -> dz/dt`` on ``ctx`` with everything that does not depend on ``z`` built once;
+        valid while the parameters do not change (rollouts and the solvers use it)."""
+        if self.engine == "reference":
+            return lambda z: reference.vector_field(self, z, ctx)
+        field = fast.FastField(self, ctx)
+        return lambda z: fast.evaluate(field, z)
 
     def forward(self, z: torch.Tensor, ctx: FieldContext) -> torch.Tensor:
         """The vector field (``vector_field``), so that ``torch.func`` can call the model."""
@@ -177,8 +176,9 @@ class MeshODENet(TrajectoryModel):
             return reference.integrate(self, z0, t, ctx)
         scheme = INTEGRATORS[c.integrator]
         if scheme.adaptive or (c.grad_mode == "adjoint" and torch.is_grad_enabled()):
-            return reference.integrate(self, z0, t, ctx, field=MeshODENet.vector_field)
-        return fast.rollout(self._fast_field(ctx), scheme, z0, t, c.substeps)
+            f = self.field_fn(ctx)
+            return reference.integrate(self, z0, t, ctx, field=lambda model, z, ctx_: f(z))
+        return fast.rollout(fast.FastField(self, ctx), scheme, z0, t, c.substeps)
 
     # --- TrajectoryModel ----------------------------------------------------------------------
     def rollout(self, x0, v0, youngs, t):

@@ -50,6 +50,7 @@ def register(sub):
     e.add_argument("--no-memory", action="store_true", help="skip the peak-memory processes")
     e.add_argument("--no-epoch", action="store_true", help="skip the paper-epoch estimate")
     e.add_argument("--no-solver", action="store_true", help="skip surrogate vs solver")
+    e.add_argument("--no-mgn", action="store_true", help="skip MeshGraphNet")
     e.add_argument("--json", default=None, help="write the results to this JSON file")
     e.add_argument("--compare", default=None, metavar="BASELINE.json",
                    help="print ratios against a JSON written by --json")
@@ -129,7 +130,7 @@ def run_engine(args):
                        budget_s=args.budget, train_intervals=args.train_intervals,
                        epoch_steps=args.epoch_steps, memory=not args.no_memory,
                        epochs=not args.no_epoch, solver=not args.no_solver,
-                       solver_trajectories=args.solver_trajectories,
+                       solver_trajectories=args.solver_trajectories, mgn=not args.no_mgn,
                        log=lambda m: print(m, flush=True))
     print("(shared machine: compare implementations measured in the same run)")
     if args.json:
