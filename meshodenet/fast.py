@@ -235,7 +235,7 @@ class FastField:
         lc = length.clamp_min(1e-30)
         Fe = torch.cat([length, vec / lc], 1)
         if tape is not None:
-            tape += [length, lc, Fe]
+            tape += [lc, Fe]
         # normalised as in GraphContext.inputs (the means are not folded into the weights:
         # in float32 that cancels digits when a feature's mean is large against its std)
         return (F - self.node_mean) / self.node_std, (Fe - self.edge_mean) / self.edge_std
@@ -323,12 +323,12 @@ class FastField:
 
     def _features_bwd(self, tape, g_F, g_Fe, g_vf):
         """Gradient w.r.t. ``x`` of the features; adds the velocity part into ``g_vf``."""
-        Fe, lc, length = tape.pop(), tape.pop(), tape.pop()
+        Fe, lc = tape.pop(), tape.pop()
         d = Fe[:, 1:]
         g_d = g_Fe[:, 1:]
-        # length = |vec|, d = vec / max(length, 1e-30)
-        g_vec = (g_Fe[:, :1] * (length > 0)) * d \
-            + (g_d - (g_d * d).sum(-1, keepdim=True) * d * (length > 1e-30)) / lc
+        # length = |vec|, d = vec / max(length, 1e-30). For an edge of zero length (vec = 0,
+        # so d = 0) this is autograd's subgradient too; only lengths in (0, 1e-30) differ.
+        g_vec = torch.addcdiv(g_Fe[:, :1] * d, g_d - (g_d * d).sum(-1, keepdim=True) * d, lc)
         g_x = torch.zeros_like(g_vf)
         g_x.index_add_(0, self.receivers, g_vec).index_add_(0, self.senders, -g_vec)
         # node features: [vf, cs, fext] (line) or [vf, fext]; fext = force - damping vf
@@ -338,7 +338,7 @@ class FastField:
             cs_h, e2r, r, n, e = tape.pop(), tape.pop(), tape.pop(), tape.pop(), tape.pop()
             g_cs = g_F.index_select(0, self.hinge_mid)[:, 3:5]  # (H, 2)
             g_num = g_cs / r.unsqueeze(1)
-            g_r = -(g_cs * cs_h).sum(-1) / r * (r > 1e-30)
+            g_r = -(g_cs * cs_h).sum(-1) / r  # (hinges with |e1||e2| < 1e-30: not masked)
             e1, e2 = e[0], e[1]
             # num = [e1.e2, e1.rot(e2)], rot(e2) = (e2_y, -e2_x, 0)
             g_e1 = (g_num.unsqueeze(-1) * e2r).sum(1)
