@@ -159,7 +159,8 @@ class FastField:
         return any(t.requires_grad for t in self.sources)
 
     def new_grads(self) -> list:
-        return [torch.zeros_like(p) for p in self.params]
+        self._G = [torch.zeros_like(p) for p in self.params]
+        return self._G
 
     def source_grads(self, G) -> list:
         """Gradients of ``sources`` from those of the effective weights ``G``."""
@@ -173,6 +174,12 @@ class FastField:
         """Defer ``G[w] += x^T g`` (and ``G[b] += sum g``): ``flush`` does them as one matmul
         per weight over many evaluations, which runs nearer the machine's peak than many
         matmuls with a short inner dimension."""
+        if x.shape[0] >= DEFER_MAX_ROWS:  # already an efficient matmul: no copies
+            G = self._G
+            G[w].addmm_(x.t(), g)
+            if b is not None:
+                G[b].add_(g.sum(0) if G[b].dim() == 1 else g)
+            return
         entry = self._pending.get(w)
         if entry is None:
             self._pending[w] = (b, [x], [g])
@@ -360,6 +367,9 @@ class FastField:
 TAPE_BUDGET_BYTES = 384 * 2**20
 #: Intervals whose deferred weight-gradient products are summed in one matmul.
 FLUSH_EVERY = 4
+#: Weight gradients of layers with at least this many rows (nodes or edges of the batch) are
+#: not deferred: their matmuls are efficient already, and the copies would cost memory.
+DEFER_MAX_ROWS = 256
 
 
 def _tape_bytes(tapes) -> int:
