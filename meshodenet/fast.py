@@ -28,7 +28,20 @@ solvers with this field.
 
 from __future__ import annotations
 
+import os
+
 import torch
+
+ENGINES = ("fast", "reference")
+
+
+def default_engine() -> str:
+    """``$MESHODENET_ENGINE`` (``fast`` or ``reference``), ``fast`` when unset: the reference
+    engine reproduces results computed before the fast path bit for bit."""
+    e = os.environ.get("MESHODENET_ENGINE", "fast")
+    if e not in ENGINES:
+        raise ValueError(f"MESHODENET_ENGINE={e!r}; valid: {', '.join(ENGINES)}")
+    return e
 
 
 # --- activations ------------------------------------------------------------------------------

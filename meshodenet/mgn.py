@@ -173,7 +173,7 @@ class MeshGraphNet(TrajectoryModel):
     name = "mgn"
     #: ``"fast"`` (``meshodenet.fast.FastGNN``: split weights, static features folded) or
     #: ``"reference"`` (the modules' own forward): same numbers up to float round-off.
-    engine = "fast"
+    engine = fast.default_engine()
 
     def __init__(self, mesh: Mesh, config: MeshGraphNetConfig, train: Trajectories | None = None,
                  hinges=None):

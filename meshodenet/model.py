@@ -5,6 +5,10 @@ State ``z = [x, v]`` of all nodes of a batch of trajectories, ``z (2, M, 3)``, a
 The GNN is encode-process-decode (``meshodenet.layers``) on the normalised features of
 ``meshodenet.features``; it outputs a normalised acceleration, de-normalised with training
 statistics. Clamped nodes get zero velocity and acceleration.
+
+Evaluations and fixed-step rollouts (and their gradients) run on the fast path
+(``meshodenet.fast``, ``engine = "fast"``); ``engine = "reference"`` runs the module-by-module
+definition (``meshodenet.reference``). Same numbers up to float round-off (docs/TRAINING.md).
 """
 
 from __future__ import annotations
@@ -126,7 +130,7 @@ class MeshODENet(TrajectoryModel):
     name = "meshodenet"
     #: ``"fast"`` (``meshodenet.fast``) or ``"reference"`` (``meshodenet.reference``): same
     #: numbers up to float round-off; not part of the config or the checkpoint.
-    engine = "fast"
+    engine = fast.default_engine()
 
     def __init__(self, mesh: Mesh, config: MeshODENetConfig, train: Trajectories | None = None,
                  hinges=None):

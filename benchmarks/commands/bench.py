@@ -54,6 +54,8 @@ def register(sub):
     e.add_argument("--json", default=None, help="write the results to this JSON file")
     e.add_argument("--compare", default=None, metavar="BASELINE.json",
                    help="print ratios against a JSON written by --json")
+    e.add_argument("--report", default=None, metavar="RESULT.json",
+                   help="print the table of a saved result instead of measuring")
     e.add_argument("--compare-impl", default=None,
                    help="implementation of BASELINE.json to compare with (default its first)")
     e.set_defaults(func=run_engine)
@@ -126,6 +128,15 @@ def run_engine(args):
     if not args.budget > 0:
         raise ValueError(f"--budget must be > 0, got {args.budget}")
     base = eb.load_json(args.compare) if args.compare else None
+    if args.report:
+        res = eb.load_json(args.report)
+        for line in eb.report(res):
+            print(line)
+        if base is not None:
+            print(f"ratios against {args.compare} (best round):")
+            for line in eb.compare(res, base, args.compare_impl):
+                print("  " + line)
+        return 0
     res = eb.run_bench(graphs, regimes, impls, threads=args.threads, rounds=args.rounds,
                        budget_s=args.budget, train_intervals=args.train_intervals,
                        epoch_steps=args.epoch_steps, memory=not args.no_memory,
