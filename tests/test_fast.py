@@ -219,3 +219,26 @@ def test_mgn_one_step_training_and_rollout_match(arrays, source):
         torch.testing.assert_close(x, y, **TOL)
     torch.testing.assert_close(out[0][2], out[1][2], **TOL)
     torch.testing.assert_close(out[0][3], out[1][3], **TOL)
+
+
+def test_bench_engine_cli_json_report_and_compare(tmp_path, capsys):
+    """`meshbench bench engine` end to end on the smallest setting (prints, never asserts
+    speed): JSON written, --report and --compare read it back; bad input exits 2."""
+    import json
+
+    from benchmarks.cli import main
+
+    out = tmp_path / "b.json"
+    args = ["bench", "engine", "--graphs", "rod1", "--regimes", "nograd,train", "--impl",
+            "reference,fast", "--rounds", "1", "--budget", "0.01", "--train-intervals", "2",
+            "--no-memory", "--no-epoch", "--no-solver", "--no-mgn", "--json", str(out)]
+    assert main(args) == 0
+    res = json.loads(out.read_text())
+    r = res["graphs"]["rod1"]["regimes"]["train"]
+    assert r["fast"]["evals_per_s"] > 0 and r["reference"]["evals_per_s"] > 0
+    assert res["graphs"]["rod1"]["forward_mflop_per_eval"] == pytest.approx(14.83, abs=0.01)
+    capsys.readouterr()
+    assert main(["bench", "engine", "--report", str(out), "--compare", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "rod1" in text and "x1.00" in text
+    assert main(["bench", "engine", "--graphs", "rod2"]) == 2
