@@ -41,12 +41,15 @@ from dataclasses import dataclass, replace
 import torch
 from torch import nn
 
+from meshodenet import fast
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import (
     EDGE_DYNAMIC,
     EDGE_STATIC,
     FeatureStats,
     GraphContext,
+    dynamic_edge_features,
+    dynamic_node_features,
     graph_context,
     n_node_features,
 )
@@ -168,6 +171,9 @@ class MeshGraphNet(TrajectoryModel):
     """
 
     name = "mgn"
+    #: ``"fast"`` (``meshodenet.fast.FastGNN``: split weights, static features folded) or
+    #: ``"reference"`` (the modules' own forward): same numbers up to float round-off.
+    engine = fast.default_engine()
 
     def __init__(self, mesh: Mesh, config: MeshGraphNetConfig, train: Trajectories | None = None,
                  hinges=None):
@@ -184,6 +190,7 @@ class MeshGraphNet(TrajectoryModel):
                                     config.hidden, config.layers, config.mlp_hidden_layers,
                                     config.activation)
         self.diverged: dict = {}
+        self._fast_held = None
 
     @torch.no_grad()
     def _compute_stats(self, train: Trajectories) -> None:
@@ -207,8 +214,19 @@ class MeshGraphNet(TrajectoryModel):
         ``k`` and ``k - 1``."""
         b = ctx.batch
         v = (x - x_prev) / ctx.dt * b.free
-        node_in, edge_in = ctx.inputs(x, v)
-        return self.gnn(node_in, edge_in, b.senders, b.receivers)
+        if self.engine == "reference":
+            node_in, edge_in = ctx.inputs(x, v)
+            return self.gnn(node_in, edge_in, b.senders, b.receivers)
+        return self._fast_gnn(ctx)(dynamic_node_features(x, v, b, ctx.kind),
+                                   dynamic_edge_features(x, b))
+
+    def _fast_gnn(self, ctx: StepContext) -> fast.FastGNN:
+        """``fast.FastGNN`` of ``ctx``: the one ``rollout`` built for its context (parameters
+        do not change during a rollout), else a new one."""
+        held = self._fast_held
+        if held is not None and held[0] is ctx and not torch.is_grad_enabled():
+            return held[1]
+        return fast.FastGNN(self.gnn, ctx)
 
     def step(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext) -> torch.Tensor:
         """Positions of frame ``k + 1``: ``2 x - x_prev + a dt^2``, clamped nodes held."""
@@ -231,10 +249,18 @@ class MeshGraphNet(TrajectoryModel):
         NaN from frame ``k`` on (graphs of a batch are disjoint, so the others go on), is
         recorded in ``diverged`` and raises a ``RuntimeWarning`` naming the step; the loop
         stops once every trajectory has diverged."""
+        ctx = self.context(youngs, x0.dtype)
+        try:
+            if self.engine == "fast" and not torch.is_grad_enabled():
+                self._fast_held = (ctx, fast.FastGNN(self.gnn, ctx))
+            return self._rollout(x0, v0, t, ctx)
+        finally:
+            self._fast_held = None
+
+    def _rollout(self, x0, v0, t, ctx):
         B, N, _ = x0.shape
         pos = x0.new_full((B, len(t), N, 3), math.nan)
         vel = torch.full_like(pos, math.nan)
-        ctx = self.context(youngs, x0.dtype)
         free = ctx.batch.free
         x = x0.reshape(-1, 3)
         pos[:, 0], vel[:, 0] = x0, (v0.reshape(-1, 3) * free).reshape(B, N, 3)
@@ -264,7 +290,7 @@ class MeshGraphNet(TrajectoryModel):
         warnings.warn(f"MeshGraphNet rollout diverged at step {k} (t = {float(t[k]):.6g} s) of "
                       f"{len(t) - 1}: positions of trajectories {idx} of the batch are not "
                       "finite; their frames from this step on are NaN", RuntimeWarning,
-                      stacklevel=3)
+                      stacklevel=4)
 
     @torch.no_grad()
     def one_step(self, data: Trajectories, batch_size: int = 256) -> torch.Tensor:

@@ -5,6 +5,10 @@ State ``z = [x, v]`` of all nodes of a batch of trajectories, ``z (2, M, 3)``, a
 The GNN is encode-process-decode (``meshodenet.layers``) on the normalised features of
 ``meshodenet.features``; it outputs a normalised acceleration, de-normalised with training
 statistics. Clamped nodes get zero velocity and acceleration.
+
+Evaluations and fixed-step rollouts (and their gradients) run on the fast path
+(``meshodenet.fast``, ``engine = "fast"``); ``engine = "reference"`` runs the module-by-module
+definition (``meshodenet.reference``). Same numbers up to float round-off (docs/TRAINING.md).
 """
 
 from __future__ import annotations
@@ -13,8 +17,8 @@ import math
 from dataclasses import dataclass
 
 import torch
-from torch import nn
 
+from meshodenet import fast, reference
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import (
     EDGE_DYNAMIC,
@@ -25,7 +29,7 @@ from meshodenet.features import (
     n_node_features,
 )
 from meshodenet.graph import GraphTopology
-from meshodenet.integrators import GRADIENT_MODES, INTEGRATORS, odesolve
+from meshodenet.integrators import GRADIENT_MODES, INTEGRATORS
 from meshodenet.interface import TrajectoryModel
 from meshodenet.layers import ACTIVATIONS, EncodeProcessDecode
 
@@ -116,20 +120,6 @@ class MeshODENetConfig:
 FieldContext = GraphContext
 
 
-class _BoundField(nn.Module):
-    """``f(t, z)`` for the solvers: the model's vector field on one ``FieldContext``.
-    An ``nn.Module`` whose parameters are the model's, as the adjoint needs."""
-
-    def __init__(self, model: MeshODENet, ctx: FieldContext):
-        super().__init__()
-        self.model = model
-        self.ctx = ctx
-
-    def forward(self, t, z):
-        self.model.nfe += 1
-        return self.model.vector_field(z, self.ctx)
-
-
 class MeshODENet(TrajectoryModel):
     """The paper's model behind the ``TrajectoryModel`` interface (see there for shapes).
 
@@ -138,6 +128,9 @@ class MeshODENet(TrajectoryModel):
     """
 
     name = "meshodenet"
+    #: ``"fast"`` (``meshodenet.fast``) or ``"reference"`` (``meshodenet.reference``): same
+    #: numbers up to float round-off; not part of the config or the checkpoint.
+    engine = fast.default_engine()
 
     def __init__(self, mesh: Mesh, config: MeshODENetConfig, train: Trajectories | None = None,
                  hinges=None):
@@ -160,13 +153,20 @@ class MeshODENet(TrajectoryModel):
         return graph_context(self.stats, self.topology, youngs, dtype)
 
     def vector_field(self, z: torch.Tensor, ctx: FieldContext) -> torch.Tensor:
-        """``dz/dt = [v, a]`` for ``z = [x, v]`` of shape ``(2, M, 3)``; clamped nodes frozen."""
-        b = ctx.batch
-        x, v = z[0], z[1] * b.free
-        node_in, edge_in = ctx.inputs(x, v)
-        a = self.gnn(node_in, edge_in, b.senders, b.receivers)
-        a = (a * ctx.acc_std + ctx.acc_mean) * b.free
-        return torch.stack([v, a])
+        """``dz/dt = [v, a]`` for ``z = [x, v]`` of shape ``(2, M, 3)``; clamped nodes frozen.
+        (Builds the fast path's static parts on every call: to evaluate many times, use
+        ``field_fn``.)"""
+        if self.engine == "reference":
+            return reference.vector_field(self, z, ctx)
+        return fast.evaluate(fast.FastField(self, ctx), z)
+
+    def field_fn(self, ctx: FieldContext):
+        """``z -> dz/dt`` on ``ctx`` with everything that does not depend on ``z`` built once;
+        valid while the parameters do not change (rollouts and the solvers use it)."""
+        if self.engine == "reference":
+            return lambda z: reference.vector_field(self, z, ctx)
+        field = fast.FastField(self, ctx)
+        return lambda z: fast.evaluate(field, z)
 
     def forward(self, z: torch.Tensor, ctx: FieldContext) -> torch.Tensor:
         """The vector field (``vector_field``), so that ``torch.func`` can call the model."""
@@ -176,9 +176,13 @@ class MeshODENet(TrajectoryModel):
         """``z`` at times ``t``: ``(T, 2, M, 3)``, with the configured integrator and gradient
         mode (the gradient mode only matters when autograd is recording)."""
         c = self.config
-        return odesolve(_BoundField(self, ctx), z0, t, c.integrator, c.grad_mode, c.substeps,
-                        checkpoint_every=c.checkpoint_every, seminorm=c.seminorm,
-                        params=tuple(self.parameters()), **c.tolerances)
+        if self.engine == "reference":
+            return reference.integrate(self, z0, t, ctx)
+        scheme = INTEGRATORS[c.integrator]
+        if scheme.adaptive or (c.grad_mode == "adjoint" and torch.is_grad_enabled()):
+            f = self.field_fn(ctx)
+            return reference.integrate(self, z0, t, ctx, field=lambda model, z, ctx_: f(z))
+        return fast.rollout(fast.FastField(self, ctx), scheme, z0, t, c.substeps)
 
     # --- TrajectoryModel ----------------------------------------------------------------------
     def rollout(self, x0, v0, youngs, t):

@@ -12,6 +12,7 @@ used (the cost of fixed-step modes does not depend on the values).
 
 from __future__ import annotations
 
+import argparse
 import multiprocessing as mp
 import os
 import sys
@@ -20,8 +21,44 @@ MODES = ("direct", "checkpoint", "adjoint")
 
 
 def register(sub):
-    p = sub.add_parser("bench", help="measure training cost", description=__doc__)
-    bsub = p.add_subparsers(dest="what", required=True, metavar="WHAT")
+    p = sub.add_parser("bench", help="measure the cost of the models (default: `bench engine`)",
+                       description="`meshbench bench` (= `meshbench bench engine` with its "
+                       "defaults) or `meshbench bench train`.")
+    bsub = p.add_subparsers(dest="what", required=False, metavar="WHAT")
+    p.set_defaults(func=lambda args: run_engine(bsub.choices["engine"].parse_args([])))
+    from benchmarks import enginebench
+
+    e = bsub.add_parser("engine", help="vector field, training step, paper epoch and surrogate "
+                        "vs solver, per graph and regime", description=enginebench.__doc__,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    e.add_argument("--graphs", default=",".join(enginebench.GRAPHS),
+                   help="comma-separated, of " + ", ".join(enginebench.GRAPHS))
+    e.add_argument("--regimes", default=",".join(enginebench.REGIMES),
+                   help="comma-separated, of " + ", ".join(enginebench.REGIMES))
+    e.add_argument("--impl", default="current",
+                   help="comma-separated implementations measured interleaved in one process: "
+                   "current (the model's default), reference, fast")
+    e.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    e.add_argument("--rounds", type=int, default=5, help="interleaved rounds per regime")
+    e.add_argument("--budget", type=float, default=0.3, help="seconds per round and impl")
+    e.add_argument("--train-intervals", type=int, default=20,
+                   help="RK4 intervals of the rollout in the `train` regime")
+    e.add_argument("--epoch-steps", type=int, default=2,
+                   help="optimizer steps timed for the paper-epoch estimate")
+    e.add_argument("--solver-trajectories", type=int, default=2,
+                   help="solver runs timed per case for surrogate vs solver")
+    e.add_argument("--no-memory", action="store_true", help="skip the peak-memory processes")
+    e.add_argument("--no-epoch", action="store_true", help="skip the paper-epoch estimate")
+    e.add_argument("--no-solver", action="store_true", help="skip surrogate vs solver")
+    e.add_argument("--no-mgn", action="store_true", help="skip MeshGraphNet")
+    e.add_argument("--json", default=None, help="write the results to this JSON file")
+    e.add_argument("--compare", default=None, metavar="BASELINE.json",
+                   help="print ratios against a JSON written by --json")
+    e.add_argument("--report", default=None, metavar="RESULT.json",
+                   help="print the table of a saved result instead of measuring")
+    e.add_argument("--compare-impl", default=None,
+                   help="implementation of BASELINE.json to compare with (default its first)")
+    e.set_defaults(func=run_engine)
     t = bsub.add_parser("train", help="time and memory of one training epoch per gradient mode",
                         description=__doc__)
     t.add_argument("--case", default="rod_falling")
@@ -71,6 +108,53 @@ def run(args):
     return 0
 
 
+def run_engine(args):
+    from benchmarks import enginebench as eb
+
+    def split(text, valid, what):
+        items = [x.strip() for x in text.split(",") if x.strip()]
+        bad = [x for x in items if x not in valid]
+        if bad or not items:
+            raise ValueError(f"--{what}: unknown {bad or text!r}; valid: {', '.join(valid)}")
+        return items
+
+    graphs = split(args.graphs, eb.GRAPHS, "graphs")
+    regimes = split(args.regimes, eb.REGIMES, "regimes")
+    impls = split(args.impl, ("current", "reference", "fast"), "impl")
+    for name in ("threads", "rounds", "train_intervals", "epoch_steps", "solver_trajectories"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got "
+                             f"{getattr(args, name)}")
+    if not args.budget > 0:
+        raise ValueError(f"--budget must be > 0, got {args.budget}")
+    base = eb.load_json(args.compare) if args.compare else None
+    if args.report:
+        res = eb.load_json(args.report)
+        for line in eb.report(res):
+            print(line)
+        if base is not None:
+            print(f"ratios against {args.compare} (best round):")
+            for line in eb.compare(res, base, args.compare_impl):
+                print("  " + line)
+        return 0
+    res = eb.run_bench(graphs, regimes, impls, threads=args.threads, rounds=args.rounds,
+                       budget_s=args.budget, train_intervals=args.train_intervals,
+                       epoch_steps=args.epoch_steps, memory=not args.no_memory,
+                       epochs=not args.no_epoch, solver=not args.no_solver,
+                       solver_trajectories=args.solver_trajectories, mgn=not args.no_mgn,
+                       log=lambda m: print(m, flush=True))
+    print("(shared machine: compare implementations measured in the same run)")
+    if args.json:
+        from groundtruth.store import save_json
+
+        save_json(args.json, res)
+    if base is not None:
+        print(f"ratios against {args.compare}:")
+        for line in eb.compare(res, base, args.compare_impl):
+            print("  " + line)
+    return 0
+
+
 def _print_row(r: dict) -> None:
     extra = f" (extrapolated from {r['batches_timed']} of {r['batches_per_epoch']} steps)" \
         if r["batches_timed"] < r["batches_per_epoch"] else ""
@@ -109,7 +193,6 @@ def _bench_arrays(case, n: int, frames: int, data_dir):
 
 def _measure(mode: str, p: dict) -> dict:
     """Child process: one (possibly partial) epoch of MeshODENet training in ``mode``."""
-    import resource
     import time
 
     import torch
@@ -135,14 +218,16 @@ def _measure(mode: str, p: dict) -> dict:
     timed = n_batches if p["max_batches"] == 0 else min(p["max_batches"], n_batches)
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats()
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    base = __import__("benchmarks.enginebench").enginebench._rss_gb() * 1024**2
     model.nfe = 0
     t0 = time.perf_counter()
     train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(0), max_batches=timed)
     if dev.type == "cuda":
         torch.cuda.synchronize()
     wall = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    from benchmarks.enginebench import _peak_gb
+
+    peak = _peak_gb() * 1024**2  # VmHWM: ru_maxrss would include the spawning parent's peak
     steps = p["frames"] - 1
     evals_per_rollout = steps * {"euler": 1, "midpoint": 2, "rk4": 4}.get(p["integrator"], 0)
     fwd = evals_per_rollout * timed  # evaluations of the forward rollouts themselves

@@ -1,0 +1,535 @@
+"""``meshbench bench``: the cost of MeshODENet's vector field, its training step and its rollouts.
+
+Per graph (one rod; 8 and 71 rods batched; the plate of the registered ``plate_cantilever``
+case, taken from the case at run time) and per regime:
+
+- ``nograd``: one vector-field evaluation without autograd (rollouts, validation), as the
+  rollouts call it (``MeshODENet.field_fn``: what does not depend on the state built once);
+- ``fwdbwd``: one evaluation and its backward pass (vector-Jacobian product);
+- ``train``: a whole-trajectory RK4 training step (``training_loss`` over a rollout of
+  ``--train-intervals`` intervals from the initial state, then ``backward``), counted as
+  ``4 * intervals`` evaluations of the rollout.
+
+Reported: evaluations per second, achieved GFLOP/s from the FLOP count below, the machine's
+measured matmul peak on the same shapes, and peak memory (peak
+resident memory, ``VmHWM``, of a fresh process running that regime three times, minus its
+resident memory before). Further: the ``paper``-setting epoch time of the rod and
+the plate (hidden 128, batch 1, whole rollouts, ``checkpoint`` gradients; estimated from
+``--epoch-steps`` optimizer steps times the steps per epoch, validation excluded) with its peak
+memory, and the time per trajectory of a rollout of the paper-size surrogate against the DER /
+DEP solver on the same initial states and moduli (the case's test moduli), one at a time and
+batched. MeshGraphNet at its ``quick`` preset: time of one training step and of one rollout.
+
+FLOP count (stated, not measured): ``2 * rows * in * out`` per linear layer of the reference
+architecture (edge MLP on the concatenation ``[e, h_i, h_j]``, node MLP on ``[h, sum e]``),
+forward only; element-wise work is not counted. A forward+backward evaluation counts 3x the
+forward FLOPs, a training-step evaluation also 3x (forward and backward; recomputation of
+checkpointed segments is overhead, not counted). The matmul peak times ``torch.mm`` on exactly
+these shapes (and their backward shapes are not separately timed).
+
+Model weights are random (seeded) and the trajectories synthetic when the case's data is not
+generated: the cost of a fixed-step rollout does not depend on the values. All timings use
+``--threads`` torch threads (default 1). ``--impl`` lists the implementations to compare
+(``reference``, ``fast``; ``current`` = whatever the model does by default): they are measured
+in one process, interleaved round by round, so that their ratios are not skewed by the load of
+a shared machine.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import platform
+import resource
+import statistics
+import sys
+import time
+
+GRAPHS = {"rod1": ("rod_falling", 1), "rod8": ("rod_falling", 8), "rod71": ("rod_falling", 71),
+          "plate": ("plate_cantilever", 1)}
+REGIMES = ("nograd", "fwdbwd", "train")
+PAPER_CASES = ("rod_falling", "plate_cantilever")
+
+
+# --- setup shared by the parent and the memory children -------------------------------------
+def _set_impl(model, impl: str) -> None:
+    if impl != "current":
+        if not hasattr(model, "engine"):
+            raise ValueError(f"--impl {impl}: this version of MeshODENet has only one "
+                             "implementation; use --impl current")
+        model.engine = impl
+
+
+def _arrays(case_id: str, n: int, frames: int):
+    from benchmarks.commands.bench import _bench_arrays
+    from benchmarks.registry import get_case
+
+    return _bench_arrays(get_case(case_id), n, frames, None)
+
+
+def build(case_id: str, n_graphs: int, frames: int, hidden: int = 128, impl: str = "current",
+          dtype=None):
+    """A paper-size MeshODENet (seeded random weights, statistics from the bench data), the
+    bench trajectories and a field context for ``n_graphs`` of them."""
+    import torch
+
+    from meshodenet.data import Mesh, Trajectories
+    from meshodenet.model import MeshODENet, MeshODENetConfig
+
+    arrays, source = _arrays(case_id, n_graphs, frames)
+    data = Trajectories.from_arrays(arrays, dtype=dtype or torch.float32)
+    torch.manual_seed(0)
+    model = MeshODENet(Mesh.from_arrays(arrays), MeshODENetConfig(hidden=hidden), data)
+    _set_impl(model, impl)
+    return model, data, source
+
+
+def linear_shapes(model, n_graphs: int) -> list[tuple[int, int, int]]:
+    """``(rows, in, out)`` of every linear layer of one evaluation (reference architecture)."""
+    from torch import nn
+
+    M = model.mesh.n_nodes * n_graphs
+    D = 2 * len(model.mesh.edges) * n_graphs
+    gnn = model.gnn
+    rows = [(gnn.node_encoder, M), (gnn.edge_encoder, D)]
+    for layer in gnn.processor:
+        rows += [(layer.edge_mlp, D), (layer.node_mlp, M)]
+    rows.append((gnn.decoder, M))
+    return [(r, m.in_features, m.out_features) for seq, r in rows for m in seq
+            if isinstance(m, nn.Linear)]
+
+
+def eval_flops(shapes) -> int:
+    return sum(2 * r * i * o for r, i, o in shapes)
+
+
+def matmul_peak(shapes, repeats: int = 200) -> float:
+    """GFLOP/s of ``torch.mm`` over exactly ``shapes`` (best of 3 rounds)."""
+    import torch
+
+    ops = [(torch.randn(r, i), torch.randn(i, o)) for r, i, o in shapes]
+    flops = eval_flops(shapes) * repeats
+    best = float("inf")
+    for _ in range(3):
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            for a, b in ops:
+                torch.mm(a, b)
+        best = min(best, time.perf_counter() - t0)
+    return flops / best / 1e9
+
+
+class Regime:
+    """One (graph, regime, implementation): ``run(n)`` performs ``n`` units of work and returns
+    the number of vector-field evaluations it stands for."""
+
+    def __init__(self, graph: str, regime: str, impl: str, train_intervals: int):
+        import torch
+
+        case_id, n = GRAPHS[graph]
+        frames = train_intervals + 1
+        self.model, self.data, self.source = build(case_id, n, frames, impl=impl)
+        self.regime, self.n = regime, n
+        m = self.model
+        if regime == "train":
+            self.model.train()
+            self.samples = torch.arange(n)
+            self.evals = 4 * train_intervals
+            return
+        self.ctx = m.field_context(self.data.youngs[:n])
+        # the field as rollouts evaluate it (static parts built once); older code: vector_field
+        self.f = m.field_fn(self.ctx) if hasattr(m, "field_fn") else \
+            (lambda z: m.vector_field(z, self.ctx))
+        x0 = self.data.pos[:n, 1].reshape(-1, 3)
+        v0 = self.data.vel[:n, 1].reshape(-1, 3)
+        self.z = torch.stack([x0, v0])
+        self.w = torch.randn_like(self.z)
+        self.evals = 1
+
+    def run(self, reps: int) -> int:
+        import torch
+
+        m = self.model
+        if self.regime == "nograd":
+            with torch.no_grad():
+                for _ in range(reps):
+                    self.f(self.z)
+        elif self.regime == "fwdbwd":
+            z = self.z.clone().requires_grad_(True)
+            for _ in range(reps):
+                m.zero_grad(set_to_none=True)
+                (self.f(z) * self.w).sum().backward()
+        else:
+            for _ in range(reps):
+                m.zero_grad(set_to_none=True)
+                m.training_loss(self.data, self.samples).backward()
+        return reps * self.evals
+
+
+def _status_gb(field: str) -> float:
+    """``VmRSS`` (now) or ``VmHWM`` (peak) of this process from /proc, in GB. Not
+    ``getrusage``: its ``ru_maxrss`` survives ``execve``, so a spawned child would inherit the
+    parent's peak."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024**2
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+
+
+def _rss_gb() -> float:
+    return _status_gb("VmRSS")
+
+
+def _peak_gb() -> float:
+    return _status_gb("VmHWM")
+
+
+def _memory_child(graph: str, regime: str, impl: str, train_intervals: int,
+                  threads: int) -> dict:
+    """Fresh process: peak RSS of one regime (three repetitions) above the RSS after setup."""
+    import torch
+
+    torch.set_num_threads(threads)
+    r = Regime(graph, regime, impl, train_intervals)
+    base = _rss_gb()
+    r.run(3)
+    peak = _peak_gb()
+    return {"peak_rss_gb": peak, "setup_rss_gb": base, "peak_above_setup_gb": max(peak - base, 0)}
+
+
+def _epoch_child(case_id: str, impl: str, steps: int, threads: int) -> dict:
+    """Fresh process: ``steps`` paper-setting optimizer steps (whole trajectories, batch 1),
+    extrapolated to an epoch of the case's training split."""
+    import torch
+
+    from benchmarks.registry import get_case
+    from meshodenet.train import TrainConfig, make_optimizer, train_epoch
+
+    torch.set_num_threads(threads)
+    case = get_case(case_id)
+    model, data, source = build(case_id, case.n_train, case.n_frames, impl=impl)
+    cfg = TrainConfig(batch_size=1, epochs=1, lr_milestones=())
+    opt, _ = make_optimizer(model, cfg)
+    n_val = max(1, round(0.1 * case.n_train)) if case.n_train >= 2 else 0
+    steps_per_epoch = case.n_train - n_val
+    train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(0), max_batches=1)  # warm
+    base = _rss_gb()
+    t0 = time.perf_counter()
+    train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(1), max_batches=steps)
+    wall = time.perf_counter() - t0
+    peak = _peak_gb()
+    return {"case": case_id, "impl": impl, "steps_timed": steps,
+            "steps_per_epoch": steps_per_epoch, "step_s": wall / steps,
+            "epoch_s": wall / steps * steps_per_epoch, "peak_rss_gb": peak,
+            "setup_rss_gb": base, "intervals": case.n_frames - 1, "nodes": model.mesh.n_nodes,
+            "data": source}
+
+
+def _solver_child(case_id: str, n: int) -> dict:
+    """Fresh process: the ground-truth solver on the first ``n`` test moduli, one at a time."""
+    from benchmarks.registry import get_case
+
+    case = get_case(case_id)
+    ys = case.sample_youngs("test")[:n]
+    times = []
+    for y in ys:
+        t0 = time.perf_counter()
+        case.simulate(float(y))
+        times.append(time.perf_counter() - t0)
+    return {"case": case_id, "trajectories": len(ys), "per_trajectory_s": statistics.mean(times),
+            "youngs": [float(y) for y in ys]}
+
+
+def _surrogate(case_id: str, impl: str, n_batch: int, repeats: int) -> dict:
+    """Rollout time per trajectory of the paper-size model from the case's initial state at its
+    first ``n_batch`` test moduli: one at a time and all together (best of ``repeats``)."""
+    import numpy as np
+    import torch
+
+    from benchmarks.registry import get_case
+
+    case = get_case(case_id)
+    model, _, _ = build(case_id, 1, 3, impl=impl)
+    model.eval()
+    q0, v0 = case.initial_state()
+    ys = torch.as_tensor(case.sample_youngs("test")[:n_batch], dtype=torch.float32)
+    t = torch.as_tensor(case.t_save(), dtype=torch.float32)
+    x0 = torch.as_tensor(np.asarray(q0).reshape(-1, 3), dtype=torch.float32)
+    v0 = torch.as_tensor(np.asarray(v0).reshape(-1, 3), dtype=torch.float32)
+    n = len(ys)
+
+    def once(b):
+        with torch.no_grad():
+            model.rollout(x0.expand(b, -1, -1), v0.expand(b, -1, -1), ys[:b], t)
+
+    best1 = bestb = float("inf")
+    for r in range(repeats):
+        if r and best1 > 5:  # long rollouts: one repetition is enough
+            break
+        t0 = time.perf_counter()
+        once(1)
+        best1 = min(best1, time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        once(n)
+        bestb = min(bestb, (time.perf_counter() - t0) / n)
+    return {"single_s": best1, "batched_per_trajectory_s": bestb, "batch": n}
+
+
+# --- the parent -------------------------------------------------------------------------------
+def _spawn(fn, *args):
+    with mp.get_context("spawn").Pool(1) as pool:
+        return pool.apply(fn, args)
+
+
+def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, train_intervals=20,
+              epoch_steps=2, memory=True, epochs=True, solver=True, solver_trajectories=2,
+              mgn=True, log=print) -> dict:
+    import torch
+
+    torch.set_num_threads(threads)
+    out = {"machine": {"platform": platform.platform(), "processor": platform.processor(),
+                       "cpus": os.cpu_count(), "python": sys.version.split()[0],
+                       "torch": torch.__version__, "threads": threads},
+           "settings": {"graphs": list(graphs), "regimes": list(regimes), "impls": list(impls),
+                        "rounds": rounds, "budget_s": budget_s,
+                        "train_intervals": train_intervals, "epoch_steps": epoch_steps,
+                        "solver_trajectories": solver_trajectories},
+           "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+           "graphs": {}, "epochs": {}, "surrogate": {}}
+    for g in graphs:
+        probe = build(GRAPHS[g][0], GRAPHS[g][1], 3)[0]
+        shapes = linear_shapes(probe, GRAPHS[g][1])
+        fl = eval_flops(shapes)
+        peak = matmul_peak(shapes)
+        entry = {"nodes": probe.mesh.n_nodes * GRAPHS[g][1],
+                 "directed_edges": 2 * len(probe.mesh.edges) * GRAPHS[g][1],
+                 "forward_mflop_per_eval": fl / 1e6, "matmul_peak_gflops": peak,
+                 "flop_bound_forward_us": fl / (peak * 1e9) * 1e6, "regimes": {}}
+        log(f"{g}: {entry['nodes']} nodes, {entry['directed_edges']} directed edges, "
+            f"{fl / 1e6:.2f} MFLOP per forward evaluation; matmul peak on these shapes "
+            f"{peak:.1f} GFLOP/s")
+        for reg in regimes:
+            objs = {i: Regime(g, reg, i, train_intervals) for i in impls}
+            mult = 1 if reg == "nograd" else 3
+            reps = {}
+            for i, o in objs.items():  # warm-up and calibration: ~budget_s per measurement
+                o.run(1)
+                t0 = time.perf_counter()
+                o.run(1)
+                reps[i] = max(1, int(budget_s / max(time.perf_counter() - t0, 1e-6)))
+            samples = {i: [] for i in impls}
+            for _ in range(rounds):  # interleaved rounds
+                for i, o in objs.items():
+                    t0 = time.perf_counter()
+                    ev = o.run(reps[i])
+                    samples[i].append(ev / (time.perf_counter() - t0))
+            res = {}
+            for i in impls:
+                eps = max(samples[i])  # best round: least disturbed by other processes
+                res[i] = {"evals_per_s": eps, "evals_per_s_best": eps,
+                          "evals_per_s_median": statistics.median(samples[i]),
+                          "gflops": eps * fl * mult / 1e9,
+                          "fraction_of_peak": eps * fl * mult / 1e9 / peak}
+                if memory:
+                    res[i].update(_spawn(_memory_child, g, reg, i, train_intervals, threads))
+                mem = f", peak +{res[i]['peak_above_setup_gb'] * 1024:.0f} MB" if memory else ""
+                log(f"  {reg:7s} {i:9s} {eps:10.0f} evals/s  {res[i]['gflops']:6.2f} GFLOP/s "
+                    f"({100 * res[i]['fraction_of_peak']:.1f}% of matmul peak){mem}")
+            entry["regimes"][reg] = res
+            entry["data"] = objs[impls[0]].source
+        out["graphs"][g] = entry
+    if epochs:
+        for c in PAPER_CASES:
+            out["epochs"][c] = {}
+            for i in impls:
+                r = _spawn(_epoch_child, c, i, epoch_steps, threads)
+                out["epochs"][c][i] = r
+                log(f"paper epoch {c} [{i}]: {r['epoch_s']:.1f} s (estimated from "
+                    f"{r['steps_timed']} of {r['steps_per_epoch']} optimizer steps, "
+                    f"{r['step_s']:.2f} s each, validation excluded); peak RSS "
+                    f"{r['peak_rss_gb']:.2f} GB")
+    if solver:
+        for c in PAPER_CASES:
+            s = _spawn(_solver_child, c, solver_trajectories)
+            out["surrogate"][c] = {"solver": s}
+            for i in impls:
+                r = _surrogate(c, i, len(_case_test_youngs(c)), 2)
+                r["speedup_single"] = s["per_trajectory_s"] / r["single_s"]
+                r["speedup_batched"] = s["per_trajectory_s"] / r["batched_per_trajectory_s"]
+                out["surrogate"][c][i] = r
+                log(f"surrogate {c} [{i}]: solver {s['per_trajectory_s']:.2f} s/trajectory "
+                    f"(mean of {s['trajectories']}); rollout {r['single_s']:.3f} s alone "
+                    f"({r['speedup_single']:.1f}x), {r['batched_per_trajectory_s']:.4f} s per "
+                    f"trajectory batched by {r['batch']} ({r['speedup_batched']:.1f}x)")
+    if mgn:
+        out["mgn"] = {c: mgn_bench(c, impls, log=log) for c in PAPER_CASES}
+    out["finished"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    return out
+
+
+def mgn_bench(case_id: str, impls, rounds: int = 3, log=print) -> dict:
+    """MeshGraphNet at its ``quick`` preset: one optimizer-step's loss and backward on a batch of
+    frames, and a no-grad rollout of one whole trajectory, per implementation, interleaved."""
+    import torch
+
+    from benchmarks.registry import get_case
+    from meshodenet.data import Mesh, Trajectories
+    from meshodenet.mgn import MeshGraphNet, mgn_presets
+
+    case = get_case(case_id)
+    arrays, _ = _arrays(case_id, 2, case.n_frames)
+    data = Trajectories.from_arrays(arrays)
+    mesh = Mesh.from_arrays(arrays)
+    tcfg, mcfg = mgn_presets("quick", mesh.kind)
+    models = {}
+    for i in impls:
+        torch.manual_seed(0)
+        models[i] = MeshGraphNet(mesh, mcfg, data)
+        _set_impl(models[i], i)
+    samples = torch.randperm(models[impls[0]].n_training_samples(data),
+                             generator=torch.Generator().manual_seed(0))[:tcfg.batch_size]
+
+    def step(m):
+        m.zero_grad(set_to_none=True)
+        m.training_loss(data, samples).backward()
+
+    def roll(m):
+        with torch.no_grad():
+            m.rollout(data.pos[:1, 0], data.vel[:1, 0], data.youngs[:1], data.t)
+
+    times = {i: {"step": [], "rollout": []} for i in impls}
+    for m in models.values():
+        step(m)
+    for _ in range(rounds):
+        for i, m in models.items():
+            t0 = time.perf_counter()
+            step(m)
+            times[i]["step"].append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            roll(m)
+            times[i]["rollout"].append(time.perf_counter() - t0)
+    out = {"hidden": mcfg.hidden, "layers": mcfg.layers, "batch_frames": tcfg.batch_size,
+           "rollout_frames": case.n_frames}
+    for i in impls:
+        out[i] = {"step_s": min(times[i]["step"]), "rollout_s": min(times[i]["rollout"])}
+        log(f"mgn {case_id} [{i}] (quick preset: hidden {mcfg.hidden}, {mcfg.layers} blocks): "
+            f"training step of {tcfg.batch_size} frames {out[i]['step_s'] * 1e3:.0f} ms, "
+            f"rollout of {case.n_frames} frames {out[i]['rollout_s']:.2f} s")
+    return out
+
+
+def _case_test_youngs(case_id):
+    from benchmarks.registry import get_case
+
+    return get_case(case_id).sample_youngs("test")
+
+
+def compare(new: dict, base: dict, base_impl: str | None = None) -> list[str]:
+    """Lines of ratios ``new / base`` (higher is better for rates, lower for times)."""
+    lines = []
+
+    def pick(d, prefer):
+        if prefer and prefer in d:
+            return d[prefer]
+        return next(iter(d.values()))
+
+    for g, e in new.get("graphs", {}).items():
+        b = base.get("graphs", {}).get(g)
+        if not b:
+            continue
+        for reg, res in e["regimes"].items():
+            br = b["regimes"].get(reg)
+            if not br:
+                continue
+            bv = _rate(pick(br, base_impl))
+            for i, r in res.items():
+                lines.append(f"{g:6s} {reg:7s} {i:9s} evals/s {_rate(r):10.0f} vs "
+                             f"{bv:10.0f}: x{_rate(r) / bv:.2f}")
+    for c, e in new.get("epochs", {}).items():
+        b = base.get("epochs", {}).get(c)
+        if not b:
+            continue
+        bv = pick(b, base_impl)["epoch_s"]
+        for i, r in e.items():
+            lines.append(f"paper epoch {c} {i}: {r['epoch_s']:.1f} s vs {bv:.1f} s: "
+                         f"x{bv / r['epoch_s']:.2f} faster")
+    for c, e in new.get("surrogate", {}).items():
+        b = base.get("surrogate", {}).get(c)
+        if not b:
+            continue
+        bi = {k: v for k, v in b.items() if k != "solver"}
+        bv = pick(bi, base_impl)
+        for i, r in e.items():
+            if i == "solver":
+                continue
+            lines.append(f"surrogate {c} {i}: single {r['single_s']:.3f} s vs "
+                         f"{bv['single_s']:.3f} s (x{bv['single_s'] / r['single_s']:.2f}), "
+                         f"batched {r['batched_per_trajectory_s']:.4f} vs "
+                         f"{bv['batched_per_trajectory_s']:.4f} s/trajectory "
+                         f"(x{bv['batched_per_trajectory_s'] / r['batched_per_trajectory_s']:.2f})")
+    for c, e in new.get("mgn", {}).items():
+        b = base.get("mgn", {}).get(c)
+        if not b:
+            continue
+        bv = pick({k: v for k, v in b.items() if isinstance(v, dict)}, base_impl)
+        for i, r in e.items():
+            if isinstance(r, dict):
+                lines.append(f"mgn {c} {i}: step x{bv['step_s'] / r['step_s']:.2f} faster, "
+                             f"rollout x{bv['rollout_s'] / r['rollout_s']:.2f} faster")
+    return lines
+
+
+def _rate(r: dict) -> float:
+    """Evaluations per second of the best of the interleaved rounds."""
+    return r.get("evals_per_s_best", r["evals_per_s"])
+
+
+def report(res: dict) -> list[str]:
+    """The table of a ``run_bench`` result (also of a saved JSON), rates of the best round, and
+    the ratio of every implementation to the first one listed."""
+    lines = []
+    impls = res["settings"]["impls"]
+    for g in sorted(res["graphs"], key=lambda k: list(GRAPHS).index(k) if k in GRAPHS else 99):
+        e = res["graphs"][g]
+        lines.append(f"{g}: {e['nodes']} nodes, {e['directed_edges']} directed edges, "
+                     f"{e['forward_mflop_per_eval']:.2f} MFLOP per forward evaluation; matmul "
+                     f"peak on these shapes {e['matmul_peak_gflops']:.1f} GFLOP/s")
+        for reg in sorted(e["regimes"], key=lambda k: REGIMES.index(k) if k in REGIMES else 9):
+            rr = e["regimes"][reg]
+            mult = 1 if reg == "nograd" else 3
+            base = _rate(rr[impls[0]])
+            for i, r in rr.items():
+                gf = _rate(r) * e["forward_mflop_per_eval"] * mult / 1e3
+                mem = f", peak +{r['peak_above_setup_gb'] * 1024:.0f} MB" \
+                    if "peak_above_setup_gb" in r else ""
+                ratio = f"  x{_rate(r) / base:.2f}" if i != impls[0] else ""
+                lines.append(f"  {reg:7s} {i:9s} {_rate(r):8.0f} evals/s {gf:6.2f} GFLOP/s "
+                             f"({100 * gf / e['matmul_peak_gflops']:.1f}% of peak){mem}{ratio}")
+    for c, e in res.get("epochs", {}).items():
+        for i, r in e.items():
+            lines.append(f"paper epoch {c} [{i}]: {r['epoch_s']:.1f} s ({r['step_s']:.2f} s per "
+                         f"step x {r['steps_per_epoch']} steps, from {r['steps_timed']} timed, "
+                         f"validation excluded); peak RSS {r['peak_rss_gb']:.2f} GB")
+    for c, e in res.get("surrogate", {}).items():
+        s = e["solver"]
+        for i, r in e.items():
+            if i != "solver":
+                lines.append(f"surrogate {c} [{i}]: solver {s['per_trajectory_s']:.2f} s per "
+                             f"trajectory; rollout alone {r['single_s']:.3f} s "
+                             f"(x{r['speedup_single']:.1f}), batched by {r['batch']} "
+                             f"{r['batched_per_trajectory_s']:.4f} s per trajectory "
+                             f"(x{r['speedup_batched']:.1f})")
+    for c, e in res.get("mgn", {}).items():
+        for i in impls:
+            if i in e:
+                lines.append(f"mgn {c} [{i}]: step {e[i]['step_s'] * 1e3:.0f} ms "
+                             f"({e['batch_frames']} frames), rollout {e[i]['rollout_s']:.2f} s "
+                             f"({e['rollout_frames']} frames)")
+    return lines
+
+
+def load_json(path) -> dict:
+    with open(path) as f:
+        return json.load(f)

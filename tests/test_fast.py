@@ -1,0 +1,244 @@
+"""The fast path (``meshodenet.fast``) against the reference implementation
+(``meshodenet.reference``) in float64: vector field, its gradients, whole rollouts and their
+gradients, on the tiny rod and strip, the rod of ``rod_falling`` (batched) and the plate of the
+registered ``plate_cantilever`` case, for several architectures and integrators."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from meshodenet.data import Mesh, Trajectories
+from meshodenet.model import MeshODENet, MeshODENetConfig
+
+torch.set_num_threads(1)
+
+TOL = {"rtol": 1e-10, "atol": 1e-12}
+
+
+def case_arrays(case_id, n=3, frames=6):
+    from benchmarks.commands.bench import _bench_arrays
+    from benchmarks.registry import get_case
+
+    return _bench_arrays(get_case(case_id), n, frames, None)[0]
+
+
+def pair(arrays, config, seed=0):
+    """The same float64 model twice: one on the fast path, one on the reference path."""
+    data = Trajectories.from_arrays(arrays, dtype=torch.float64)
+    torch.manual_seed(seed)
+    fast = MeshODENet(Mesh.from_arrays(arrays), config, data).double()
+    torch.manual_seed(seed)
+    ref = MeshODENet(Mesh.from_arrays(arrays), config, data).double()
+    ref.engine = "reference"
+    with torch.no_grad():  # random biases and decoder so that nothing is trivially zero
+        g = torch.Generator().manual_seed(seed + 1)
+        for pf, pr in zip(fast.parameters(), ref.parameters(), strict=True):
+            pf.add_(0.1 * torch.randn(pf.shape, generator=g, dtype=pf.dtype))
+            pr.copy_(pf)
+    assert fast.engine == "fast"
+    return fast, ref, data
+
+
+def perturbed_state(data, n):
+    g = torch.Generator().manual_seed(3)
+    x = data.pos[:n, 2].reshape(-1, 3)
+    v = data.vel[:n, 2].reshape(-1, 3)
+    x = x + 1e-3 * torch.randn(x.shape, generator=g, dtype=x.dtype)
+    v = v + 1e-2 * torch.randn(v.shape, generator=g, dtype=v.dtype)
+    return torch.stack([x, v])
+
+
+def grads(model):
+    return [torch.zeros_like(p) if p.grad is None else p.grad.clone() for p in model.parameters()]
+
+
+def check_field(fast, ref, data, n):
+    z = perturbed_state(data, n)
+    w = torch.randn(z.shape, generator=torch.Generator().manual_seed(4), dtype=z.dtype)
+    out = {}
+    for name, m in (("fast", fast), ("ref", ref)):
+        ctx = m.field_context(data.youngs[:n])
+        with torch.no_grad():
+            nograd = m.vector_field(z, ctx)
+        zz = z.clone().requires_grad_(True)
+        m.zero_grad()
+        f = m.vector_field(zz, ctx)
+        (f * w).sum().backward()
+        out[name] = (nograd, f.detach(), zz.grad, grads(m))
+    (a0, a1, az, ag), (b0, b1, bz, bg) = out["fast"], out["ref"]
+    torch.testing.assert_close(a0, b0, **TOL)
+    torch.testing.assert_close(a1, b1, **TOL)
+    torch.testing.assert_close(az, bz, **TOL)
+    for x, y in zip(ag, bg, strict=True):
+        torch.testing.assert_close(x, y, **TOL)
+
+
+def check_training_step(fast, ref, data, n):
+    samples = torch.arange(n)
+    out = {}
+    for name, m in (("fast", fast), ("ref", ref)):
+        m.zero_grad()
+        loss = m.training_loss(data, samples)
+        loss.backward()
+        with torch.no_grad():
+            pos, vel = m.rollout(data.pos[:n, 0], data.vel[:n, 0], data.youngs[:n], data.t)
+        out[name] = (loss.detach(), grads(m), pos, vel)
+    (la, ga, pa, va), (lb, gb, pb, vb) = out["fast"], out["ref"]
+    torch.testing.assert_close(la, lb, **TOL)
+    torch.testing.assert_close(pa, pb, **TOL)
+    torch.testing.assert_close(va, vb, **TOL)
+    for x, y in zip(ga, gb, strict=True):
+        torch.testing.assert_close(x, y, **TOL)
+
+
+CONFIGS = [
+    MeshODENetConfig(hidden=16),
+    MeshODENetConfig(hidden=8, layers=2, mlp_hidden_layers=1, activation="silu"),
+    MeshODENetConfig(hidden=8, layers=0, mlp_hidden_layers=0, activation="tanh"),
+]
+
+
+@pytest.mark.parametrize("config", CONFIGS, ids=["relu", "silu-2layers", "tanh-0layers"])
+def test_field_and_gradients_tiny(arrays, config):
+    fast, ref, data = pair(arrays, config)
+    check_field(fast, ref, data, 2)
+
+
+@pytest.mark.parametrize("integrator,substeps,grad_mode", [
+    ("rk4", 1, "checkpoint"), ("rk4", 2, "direct"), ("midpoint", 1, "checkpoint"),
+    ("euler", 3, "checkpoint")])
+def test_rollout_gradients_tiny(arrays, integrator, substeps, grad_mode):
+    cfg = MeshODENetConfig(hidden=8, mlp_hidden_layers=1, integrator=integrator,
+                           substeps=substeps, grad_mode=grad_mode)
+    fast, ref, data = pair(arrays, cfg)
+    check_training_step(fast, ref, data, 2)
+
+
+@pytest.mark.parametrize("case_id,n", [("rod_falling", 1), ("rod_falling", 3),
+                                       ("plate_cantilever", 1)])
+def test_paper_size_on_case_graphs(case_id, n):
+    """Paper-size network (hidden 128) on the real rod (alone and batched) and plate."""
+    fast, ref, data = pair(case_arrays(case_id, n=3, frames=4), MeshODENetConfig())
+    check_field(fast, ref, data, n)
+    check_training_step(fast, ref, data, n)
+
+
+def test_multiple_shooting_windows_match():
+    cfg = MeshODENetConfig(hidden=16, shooting=2)
+    fast, ref, data = pair(case_arrays("rod_falling", n=2, frames=7), cfg)
+    samples = torch.arange(fast.n_training_samples(data))
+    losses = []
+    for m in (fast, ref):
+        m.zero_grad()
+        loss = m.training_loss(data, samples, torch.Generator().manual_seed(0))
+        loss.backward()
+        losses.append((loss.detach(), grads(m)))
+    torch.testing.assert_close(losses[0][0], losses[1][0], **TOL)
+    for x, y in zip(losses[0][1], losses[1][1], strict=True):
+        torch.testing.assert_close(x, y, **TOL)
+
+
+def test_adjoint_and_dopri5_fall_back_to_the_reference_solvers(arrays):
+    for cfg in (MeshODENetConfig(hidden=8, grad_mode="adjoint"),
+                MeshODENetConfig(hidden=8, integrator="dopri5")):
+        fast, ref, data = pair(arrays, cfg)
+        check_training_step(fast, ref, data, 1)
+
+
+def test_float32_matches_to_round_off():
+    arrays = case_arrays("rod_falling", n=2, frames=11)
+    data = Trajectories.from_arrays(arrays)
+    torch.manual_seed(0)
+    m = MeshODENet(Mesh.from_arrays(arrays), MeshODENetConfig(hidden=32), data)
+    out = []
+    for engine in ("fast", "reference"):
+        m.engine = engine
+        m.zero_grad()
+        m.training_loss(data, torch.arange(2)).backward()
+        out.append(grads(m))
+    for x, y in zip(*out, strict=True):
+        torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-6)
+
+
+def test_field_follows_parameter_updates():
+    fast, ref, data = pair(case_arrays("rod_falling", n=1, frames=3), MeshODENetConfig(hidden=8))
+    ctx = fast.field_context(data.youngs[:1])
+    z = perturbed_state(data, 1)
+    with torch.no_grad():
+        before = fast.vector_field(z, ctx)
+        for p in fast.parameters():
+            p.mul_(1.5)
+        after = fast.vector_field(z, ctx)
+        for p in ref.parameters():
+            p.mul_(1.5)
+        expect = ref.vector_field(z, ref.field_context(data.youngs[:1]))
+    assert not torch.allclose(before, after)
+    torch.testing.assert_close(after, expect, **TOL)
+    with torch.no_grad():
+        torch.testing.assert_close(fast.field_fn(ctx)(z), expect, **TOL)
+
+
+# --- MeshGraphNet -------------------------------------------------------------------------------
+def mgn_pair(arrays, config, seed=0):
+    from meshodenet.mgn import MeshGraphNet
+
+    data = Trajectories.from_arrays(arrays, dtype=torch.float64)
+    models = []
+    for engine in ("fast", "reference"):
+        torch.manual_seed(seed)
+        m = MeshGraphNet(Mesh.from_arrays(arrays), config, data).double()
+        m.engine = engine
+        models.append(m)
+    with torch.no_grad():
+        g = torch.Generator().manual_seed(seed + 1)
+        for pf, pr in zip(models[0].parameters(), models[1].parameters(), strict=True):
+            pf.add_(0.1 * torch.randn(pf.shape, generator=g, dtype=pf.dtype))
+            pr.copy_(pf)
+    return (*models, data)
+
+
+@pytest.mark.parametrize("source", ["tiny", "rod_falling", "plate_cantilever"])
+def test_mgn_one_step_training_and_rollout_match(arrays, source):
+    from meshodenet.mgn import MeshGraphNetConfig
+
+    arr = arrays if source == "tiny" else case_arrays(source, n=2, frames=5)
+    cfg = MeshGraphNetConfig(hidden=16, layers=3, noise=0.01)
+    fast, ref, data = mgn_pair(arr, cfg)
+    out = []
+    for m in (fast, ref):
+        m.zero_grad()
+        loss = m.training_loss(data, torch.arange(m.n_training_samples(data)),
+                               torch.Generator().manual_seed(0))
+        loss.backward()
+        with torch.no_grad():
+            pos, vel = m.rollout(data.pos[:, 0], data.vel[:, 0], data.youngs, data.t)
+        out.append((loss.detach(), grads(m), pos, vel))
+    torch.testing.assert_close(out[0][0], out[1][0], **TOL)
+    for x, y in zip(out[0][1], out[1][1], strict=True):
+        torch.testing.assert_close(x, y, **TOL)
+    torch.testing.assert_close(out[0][2], out[1][2], **TOL)
+    torch.testing.assert_close(out[0][3], out[1][3], **TOL)
+
+
+def test_bench_engine_cli_json_report_and_compare(tmp_path, capsys):
+    """`meshbench bench engine` end to end on the smallest setting (prints, never asserts
+    speed): JSON written, --report and --compare read it back; bad input exits 2."""
+    import json
+
+    from benchmarks.cli import main
+
+    out = tmp_path / "b.json"
+    args = ["bench", "engine", "--graphs", "rod1", "--regimes", "nograd,train", "--impl",
+            "reference,fast", "--rounds", "1", "--budget", "0.01", "--train-intervals", "2",
+            "--no-memory", "--no-epoch", "--no-solver", "--no-mgn", "--json", str(out)]
+    assert main(args) == 0
+    res = json.loads(out.read_text())
+    r = res["graphs"]["rod1"]["regimes"]["train"]
+    assert r["fast"]["evals_per_s"] > 0 and r["reference"]["evals_per_s"] > 0
+    assert res["graphs"]["rod1"]["forward_mflop_per_eval"] == pytest.approx(14.83, abs=0.01)
+    capsys.readouterr()
+    assert main(["bench", "engine", "--report", str(out), "--compare", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "rod1" in text and "x1.00" in text
+    assert main(["bench", "engine", "--graphs", "rod2"]) == 2
