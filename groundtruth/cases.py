@@ -18,14 +18,29 @@ from dataclasses import dataclass
 import numpy as np
 
 from groundtruth import implicit
-from groundtruth.implicit import PREDICTORS, NewtonSettings
 from groundtruth.hinge import HingeTerm, hinge_stiffness
-from groundtruth.mesh import (PATTERNS, delaunay_mesh, graded_rows, is_cell_diagonal, mesh_edges,
-                              mesh_hinges, staggered_strip_points, strip_mesh, triangle_areas)
-from groundtruth.plate import (clamp_mask, cst_spring_stiffness, drop_clamped, inplane_stiffness,
-                               lumped_mass, plate_terms)
-from groundtruth.stretch import StretchTerm
+from groundtruth.implicit import PREDICTORS, NewtonSettings
+from groundtruth.mesh import (
+    PATTERNS,
+    delaunay_mesh,
+    graded_rows,
+    is_cell_diagonal,
+    mesh_edges,
+    mesh_hinges,
+    staggered_strip_points,
+    strip_mesh,
+    triangle_areas,
+)
+from groundtruth.plate import (
+    clamp_mask,
+    cst_spring_stiffness,
+    drop_clamped,
+    inplane_stiffness,
+    lumped_mass,
+    plate_terms,
+)
 from groundtruth.rod import rod_terms
+from groundtruth.stretch import StretchTerm
 from groundtruth.system import MechanicalSystem
 
 # Bump when a solver change alters the trajectories of an unchanged case: invalidates caches.
@@ -503,9 +518,9 @@ class InPlanePlateCase(CaseBase):
     triangle from its constant-strain plane-stress stiffness with ``poisson``
     (``cst_spring_stiffness``), then all multiplied by the mesh's bending calibration factor
     (``bending_calibration``): linear triangles with few rows across are too stiff in in-plane
-    bending (shear locking: the network deflects 0.88 of beam theory at 5 rows), so the springs are softened by the
-    ratio of the network's small-load static tip deflection to Timoshenko beam theory (measured
-    on this mesh, a few ms). Hinges k_b = D |e|^2 / (A_A + A_B) (flat and idle in plane);
+    bending (shear locking: the network deflects 0.88 of beam theory at 5 rows), so the springs
+    are softened by the ratio of the network's small-load static tip deflection to Timoshenko
+    beam theory (measured on this mesh, a few ms). Hinges k_b = D |e|^2 / (A_A + A_B) (flat and idle in plane);
     lumped mass rho A h / 3 per triangle corner; gravity -m g y; mass-proportional damping
     ``-c m v`` with c = ``damping_rate`` (fitted to the authors' curve, docs/PLATE.md).
 
@@ -522,7 +537,7 @@ class InPlanePlateCase(CaseBase):
     gravity: float = 9.81
     poisson: float = 1.0 / 3.0
     shear_factor: float = 5.0 / 6.0
-    damping_rate: float = 16.0
+    damping_rate: float = 20.75
     n_rows: int = 5
     n_long: int = 35
     calibrate_bending: bool = True
