@@ -520,7 +520,8 @@ class InPlanePlateCase(CaseBase):
     (``bending_calibration``): linear triangles with few rows across are too stiff in in-plane
     bending (shear locking: the network deflects 0.88 of beam theory at 5 rows), so the springs
     are softened by the ratio of the network's small-load static tip deflection to Timoshenko
-    beam theory (measured on this mesh, a few ms). Hinges k_b = D |e|^2 / (A_A + A_B) (flat and idle in plane);
+    beam theory (measured on this mesh, a few ms). Hinges k_b = D |e|^2 / (A_A + A_B) (flat,
+    idle in plane);
     lumped mass rho A h / 3 per triangle corner; gravity -m g y; mass-proportional damping
     ``-c m v`` with c = ``damping_rate`` (fitted to the authors' curve, docs/PLATE.md).
 
