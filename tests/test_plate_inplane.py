@@ -212,3 +212,18 @@ def test_reference_file_provenance_header():
         pytest.skip("authors' digitized curve not present")
     head = Path(pf.REFERENCE_CSV).read_text().splitlines()[0]
     assert "trajectory_evolution.mp4" in Path(pf.REFERENCE_CSV).read_text() and head.startswith("#")
+
+
+def test_cli_static_of_the_registered_case(tmp_path):
+    """``meshbench simulate plate_cantilever --youngs Y --static --out F.npz``: one frame, the
+    case's 182-node mesh, 5 clamped nodes, the static solution."""
+    from benchmarks.cli import main
+    from groundtruth import store
+
+    out = tmp_path / "static.npz"
+    assert main(["simulate", "plate_cantilever", "--youngs", "7.5e6", "--static",
+                 "--out", str(out)]) == 0
+    data = store.load_npz(out, "plate_cantilever", CASE.hash())
+    assert data["pos"].shape == (1, 1, 182, 3) and data["node_type"].sum() == 5
+    np.testing.assert_allclose(data["pos"][0, 0], CASE.solve_static(7.5e6))
+    assert isinstance(CASE, InPlanePlateCase)
