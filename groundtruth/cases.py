@@ -565,10 +565,13 @@ class InPlanePlateCase(CaseBase):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise ValueError(f"InPlanePlateCase.damping_rate must be a finite number >= 0 (1/s), "
                              f"got {v!r}")
-        for name, low in (("n_rows", 2), ("n_long", 1)):
+        for name, low in (("n_rows", 3), ("n_long", 1)):
             n = getattr(self, name)
             if isinstance(n, bool) or not isinstance(n, int) or n < low:
                 raise ValueError(f"InPlanePlateCase.{name} must be an int >= {low}, got {n!r}")
+        if self.n_rows % 2 == 0:
+            raise ValueError(f"InPlanePlateCase.n_rows must be odd (a node row on the centre "
+                             f"line carries the tip node), got {self.n_rows!r}")
         if self.newton_predictor not in PREDICTORS:
             raise ValueError(f"InPlanePlateCase.newton_predictor must be one of {PREDICTORS}, "
                              f"got {self.newton_predictor!r}")

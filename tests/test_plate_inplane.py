@@ -200,7 +200,7 @@ def test_trajectory_stays_planar_and_keeps_shape():
     assert sim["pos"][-1, CASE.corner_node, 1] < -1e-3
 
 
-@pytest.mark.parametrize("field, value", [("n_rows", 1), ("n_long", 0), ("poisson", 0.6),
+@pytest.mark.parametrize("field, value", [("n_rows", 1), ("n_rows", 4), ("n_long", 0), ("poisson", 0.6),
                                           ("damping_rate", -1.0), ("width", 0.0)])
 def test_bad_parameters_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
