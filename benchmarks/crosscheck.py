@@ -14,7 +14,8 @@ centreline. The comparison reports
 Cross-checks are registered by case id in ``CROSSCHECKS``. A check is a list of
 ``Resolution`` rows (the first one is the default) and two callables: ``der_side`` /
 ``rod_fem_side`` for ``rod_cantilever``, ``dep_side`` / ``plate_strip_crosscheck``'s FEM strip for
-``plate_strip``.
+``plate_strip`` (the through-thickness ``plate_hanging``), ``inplane_dep_side`` /
+``inplane_fem_side`` for ``plate_cantilever`` (the in-plane plate, dynamic and static).
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ class Resolution:
         integrator: FEM time integrator (``groundtruth.fem.INTEGRATORS``).
         poisson: Poisson ratio of the FEM material.
         dt_scale: both sides' time step relative to the case's.
+        static: compare static equilibria (frames: rest, equilibrium) instead of trajectories.
     """
 
     variant: str
@@ -55,6 +57,7 @@ class Resolution:
     integrator: str = "backward_euler"
     poisson: float = 0.0
     dt_scale: float = 1.0
+    static: bool = False
 
 
 @dataclass
@@ -336,10 +339,107 @@ def plate_crosscheck(case, youngs: float | None = None,
     return check
 
 
+# --- the in-plane plate: DEP vs a plane-stress FEM rectangle ---------------------------------
+
+
+def inplane_study(fem_nx: int = 60, fem_ny: int = 4) -> tuple:
+    """Default (5 rows across, 157 nodes), the refinement series (3, 9, 17 rows) against the same
+    FEM (``fem_nx x fem_ny`` 9-node quadrilaterals, plane stress, the case's nu), a doubly
+    refined FEM, and static equilibria at 5 and 9 rows."""
+    nu = 1.0 / 3.0
+    return (Resolution("default", 5, fem_nx, fem_ny, poisson=nu),
+            Resolution("refine", 3, fem_nx, fem_ny, poisson=nu),
+            Resolution("refine", 9, fem_nx, fem_ny, poisson=nu),
+            Resolution("refine", 17, fem_nx, fem_ny, poisson=nu),
+            Resolution("fem_refined", 5, 2 * fem_nx, 2 * fem_ny, poisson=nu),
+            Resolution("static", 3, fem_nx, fem_ny, poisson=nu, static=True),
+            Resolution("static", 5, fem_nx, fem_ny, poisson=nu, static=True),
+            Resolution("static", 9, fem_nx, fem_ny, poisson=nu, static=True))
+
+
+def _inplane_resolved(case, res: Resolution):
+    from benchmarks.plate_fidelity import refined
+
+    return dataclasses.replace(refined(case, res.ref_nodes), dt=case.dt * res.dt_scale,
+                               poisson=res.poisson)
+
+
+def inplane_dep_side(case, youngs: float) -> Callable[[Resolution], SideResult]:
+    """The in-plane DEP plate with ``ref_nodes`` rows across. Tip: the centre of the free edge;
+    centreline: the nodes of the middle row y = w/2; both (x, y) and shifted to the FEM's
+    frame (y measured from the centre line)."""
+
+    def run(res: Resolution) -> SideResult:
+        c = _inplane_resolved(case, res)
+        x0 = c.rest_positions()
+        line = np.flatnonzero(np.abs(x0[:, 1] - 0.5 * c.width) < 1e-12)
+        line = line[np.argsort(x0[line, 0])]
+        t0 = time.perf_counter()
+        if res.static:
+            q = c.solve_static(youngs)
+            t, pos, info = np.array([0.0, 1.0]), np.stack([x0, q]), {}
+        else:
+            sim = c.simulate(youngs)
+            t, pos, info = sim["t"], sim["pos"], sim["stats"]
+        wall = time.perf_counter() - t0
+        pos = pos[..., :2] - np.array([0.0, 0.5 * c.width])
+        tip = c.tip_node
+        return SideResult(t, pos[:, tip] - pos[0, tip], x0[line, 0], pos[:, line], wall, info)
+
+    return run
+
+
+def inplane_fem_side(case, youngs: float, rtol: float = 1e-8) -> Callable:
+    """The same rectangle ``[0, L] x [-w/2, w/2]`` as a plane-stress SVK continuum (E = Y,
+    thickness h, the case's density, gravity and mass-proportional damping), clamped on
+    x = 0, backward Euler with the case's dt (dynamic) or load-stepped Newton (static)."""
+    from groundtruth import fem
+
+    def run(res: Resolution, points: np.ndarray) -> SideResult:
+        c = _inplane_resolved(case, res)
+        mat = fem.Material(youngs, res.poisson, c.density, c.thickness, "plane_stress")
+        model = fem.cantilever(c.length, c.width, mat, res.fem_nx, res.fem_ny,
+                               gravity=c.gravity, damping=c.damping_rate)
+        settings = NewtonSettings(dt=c.dt, rtol=rtol)
+        t0 = time.perf_counter()
+        if res.static:
+            u1 = fem.solve_static(model, settings, n_load_steps=5)
+            t, u, stats = np.array([0.0, 1.0]), np.stack([np.zeros_like(u1), u1]), {}
+        else:
+            t = c.t_save()
+            u, _, st = fem.simulate(model, t, settings, res.integrator)
+            stats = dataclasses.asdict(st)
+        wall = time.perf_counter() - t0
+        return fem_result(model, t, u, points, wall, stats)
+
+    return run
+
+
+def inplane_crosscheck(case, youngs: float | None = None,
+                       resolutions: Sequence[Resolution] | None = None,
+                       target_l2: float = 0.03) -> CrossCheck:
+    """In-plane DEP plate (``InPlanePlateCase``; default modulus: the middle of its training
+    range, 5 MPa) vs the plane-stress FEM rectangle."""
+    y = float(case.reference_youngs if youngs is None else youngs)
+    res = inplane_study() if resolutions is None else tuple(resolutions)
+    return CrossCheck(case.id, y, inplane_dep_side(case, y), inplane_fem_side(case, y), res,
+                      target_l2, {"case": case.to_dict(), "dt": case.dt,
+                                  "damping_rate": case.damping_rate,
+                                  "fem_model": "plane_stress, E = Y, nu = case.poisson, "
+                                               "thickness h", "fem_element": "ElementQuad2",
+                                  "clamp": "DEP: all nodes on x = 0; FEM: edge x = 0"})
+
+
+def _plate_cantilever(youngs: float | None = None) -> CrossCheck:
+    from benchmarks.registry import get_case
+
+    return inplane_crosscheck(get_case("plate_cantilever"), youngs)
+
+
 def _plate_strip(youngs: float | None = None) -> CrossCheck:
     from benchmarks.registry import get_case
 
-    return plate_crosscheck(get_case("plate_cantilever"), youngs)
+    return plate_crosscheck(get_case("plate_hanging"), youngs)
 
 
 def _rod_cantilever(youngs: float | None = None) -> CrossCheck:
@@ -352,6 +452,7 @@ def _rod_cantilever(youngs: float | None = None) -> CrossCheck:
 CROSSCHECKS: dict[str, Callable[..., CrossCheck]] = {
     "rod_cantilever": _rod_cantilever,
     "plate_strip": _plate_strip,
+    "plate_cantilever": _plate_cantilever,
 }
 
 

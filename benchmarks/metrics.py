@@ -17,7 +17,8 @@ import pandas as pd
 
 # The steps of the paper's Tables 1 and 2.
 PAPER_STEPS = {"rod_falling": (1, 30, 60, 90, 120, 150, 180),
-               "plate_cantilever": (1, 25, 50, 150, 250, 350)}
+               "plate_cantilever": (1, 25, 50, 150, 250, 350),
+               "plate_hanging": (1, 25, 50, 150, 250, 350)}
 
 
 def table_steps(case_id: str, n_frames: int) -> tuple:

@@ -169,3 +169,49 @@ def mesh_hinges(triangles: np.ndarray):
     hinges = np.stack([half[a, 0], half[a, 1], opposite[a], opposite[b]], axis=1)
     srt = np.lexsort((hinges[:, 1], hinges[:, 0]))
     return hinges[srt], np.stack([tri_of[a], tri_of[b]], axis=1)[srt]
+
+
+def staggered_strip_points(length: float, width: float, n_rows: int, n_long: int) -> np.ndarray:
+    """The point set of an unstructured strip mesh ``[0, length] x [0, width]`` in z = 0.
+
+    ``n_rows`` rows at ``y_j = j width / (n_rows - 1)``. The two boundary rows (and every even
+    row) carry ``n_long + 1`` nodes at ``x = k dx``, ``dx = length / n_long``; odd interior rows
+    are staggered by ``dx / 2`` (nodes at ``(k + 1/2) dx``) plus one node at each short edge, so
+    every row ends on both short edges (the clamp x = 0 holds all rows). With
+    ``dx ~ (2 / sqrt 3) dy`` the triangles are near-equilateral. Points are sorted by x, then y,
+    so a Delaunay mesh of them has a narrow band (``groundtruth.assembly``).
+    """
+    if not (isinstance(n_rows, (int, np.integer)) and n_rows >= 2):
+        raise ValueError(f"staggered_strip_points: n_rows must be an int >= 2, got {n_rows!r}")
+    if not (isinstance(n_long, (int, np.integer)) and n_long >= 1):
+        raise ValueError(f"staggered_strip_points: n_long must be an int >= 1, got {n_long!r}")
+    dx = length / n_long
+    pts = []
+    for j in range(n_rows):
+        y = j * width / (n_rows - 1)
+        if j % 2 == 0 or j == n_rows - 1:
+            xs = np.arange(n_long + 1) * dx
+        else:
+            xs = np.concatenate([[0.0], (np.arange(n_long) + 0.5) * dx, [length]])
+        pts.append(np.stack([xs, np.full_like(xs, y)], axis=1))
+    p = np.concatenate(pts)
+    p = p[np.lexsort((p[:, 1], p[:, 0]))]
+    return np.concatenate([p, np.zeros((len(p), 1))], axis=1)
+
+
+def delaunay_mesh(points: np.ndarray, rel_area_tol: float = 1e-9):
+    """Delaunay triangulation (``scipy.spatial.Delaunay``, Qhull) of planar ``points (N, 3)``
+    (z ignored), triangles counter-clockwise from +z; flat triangles that Qhull may leave on
+    collinear hull points (area <= ``rel_area_tol`` x longest edge^2) are dropped.
+    Returns ``triangles (M, 3)``; ``check_mesh`` validates the result."""
+    from scipy.spatial import Delaunay
+
+    p = np.asarray(points, float)[:, :2]
+    tri = Delaunay(p).simplices.astype(np.int64)
+    d1, d2 = p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]]
+    signed = 0.5 * (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    tri[signed < 0] = tri[signed < 0][:, [0, 2, 1]]
+    edge2 = np.max(np.sum((p[tri] - p[np.roll(tri, 1, axis=1)]) ** 2, axis=2), axis=1)
+    tri = tri[np.abs(signed) > rel_area_tol * edge2]
+    check_mesh(np.asarray(points, float), tri)
+    return tri

@@ -131,3 +131,79 @@ def clamp_mask(nodes: np.ndarray, x_clamp: float, min_rows: int = 2, tol: float 
         raise ValueError(f"the clamp x <= {x_clamp!r} m fixes {rows} row(s) of nodes; a hinge "
                          f"plate needs at least {min_rows} clamped rows to hold the slope")
     return fixed
+
+
+def plane_stress_matrix(youngs: float, poisson: float) -> np.ndarray:
+    """Plane-stress elasticity ``D (3, 3)`` (Pa) in Voigt form ``(s_xx, s_yy, s_xy) = D (e_xx,
+    e_yy, 2 e_xy)``: ``Y / (1 - nu^2) [[1, nu, 0], [nu, 1, 0], [0, 0, (1 - nu) / 2]]``."""
+    Y = _check_positive("youngs", youngs)
+    if not (0.0 <= float(poisson) < 0.5):
+        raise ValueError(f"poisson must be in [0, 0.5), got {poisson!r}")
+    nu = float(poisson)
+    return Y / (1.0 - nu**2) * np.array([[1.0, nu, 0.0], [nu, 1.0, 0.0],
+                                         [0.0, 0.0, 0.5 * (1.0 - nu)]])
+
+
+def edge_strain_map(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``T (M, 3, 3)``: row i maps a triangle's Voigt strain ``(e_xx, e_yy, 2 e_xy)`` to the
+    strain ``t_i . e t_i`` of its edge i (edges ``(t0, t1), (t1, t2), (t2, t0)``, unit
+    directions ``t_i`` in the x-y plane): ``[tx^2, ty^2, tx ty]``."""
+    x = np.asarray(nodes, float)[:, :2]
+    t = np.asarray(triangles, np.int64)
+    d = x[np.roll(t, -1, axis=1)] - x[t]                               # (M, 3, 2)
+    d = d / np.linalg.norm(d, axis=2, keepdims=True)
+    return np.stack([d[..., 0] ** 2, d[..., 1] ** 2, d[..., 0] * d[..., 1]], axis=2)
+
+
+def cst_spring_stiffness(nodes: np.ndarray, triangles: np.ndarray, edges: np.ndarray,
+                         youngs: float, thickness: float, poisson: float = 1.0 / 3.0):
+    """Edge spring stiffness ``k_s (E,)`` (N) calibrated per triangle from its constant-strain
+    plane-stress stiffness.
+
+    A triangle of rest area A under a uniform small strain e stores ``1/2 A h e^T D e``
+    (``plane_stress_matrix``). Its three edge strains ``eps = T e`` (``edge_strain_map``)
+    determine e, so this energy is ``1/2 eps^T K_e eps`` with ``K_e = T^-T A h D T^-1``. Three
+    springs store ``1/2 sum_i c_i eps_i^2``: they take ``c_i = (K_e)_ii``, and each edge sums
+    the ``c_i`` of its one or two triangles; ``k_s = c / l0`` for
+    ``E_s = 1/2 k_s l0 eps^2``. On an equilateral triangle with nu = 1/3, K_e is diagonal and
+    the springs reproduce the constant-strain element exactly (each edge gets
+    ``(sqrt 3 / 4) Y h l0`` per triangle, the DEP constant for two triangles); on other
+    triangles the off-diagonal couplings are dropped (a spring network has nu = 1/3 and no
+    more freedom). K_e is positive definite, so every c_i > 0.
+    """
+    Y = _check_positive("youngs", youngs)
+    h = _check_positive("thickness", thickness)
+    x = np.asarray(nodes, float)
+    t = np.asarray(triangles, np.int64)
+    T = edge_strain_map(x, t)
+    Ti = np.linalg.inv(T)
+    A = triangle_areas(x, t)
+    K = np.einsum("mji,jk,mkl->mil", Ti, plane_stress_matrix(Y, poisson), Ti) \
+        * (A * h)[:, None, None]
+    c = np.einsum("mii->mi", K)                                        # (M, 3)
+    half = np.sort(np.stack([t, np.roll(t, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+    e = np.asarray(edges, np.int64)
+    n = int(max(half.max(), e.max())) + 1
+    pos = np.searchsorted(e[:, 0] * n + e[:, 1], half[:, 0] * n + half[:, 1])
+    c_edge = np.bincount(pos, weights=c.ravel(), minlength=len(e))
+    l0 = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)
+    return c_edge / l0
+
+
+def inplane_stiffness(nodes: np.ndarray, edges: np.ndarray, k_s: np.ndarray):
+    """Linear in-plane stiffness ``K (2N, 2N)`` (CSR, N/m; dofs x0, y0, x1, ...) of edge
+    springs ``E_s = 1/2 k_s l0 eps^2`` about the rest shape: ``(k_s / l0) t t^T`` per edge."""
+    import scipy.sparse
+
+    x = np.asarray(nodes, float)[:, :2]
+    e = np.asarray(edges, np.int64)
+    d = x[e[:, 1]] - x[e[:, 0]]
+    l0 = np.linalg.norm(d, axis=1)
+    t = d / l0[:, None]
+    kk = (np.asarray(k_s, float) / l0)[:, None, None] * t[:, :, None] * t[:, None, :]
+    blk = np.concatenate([np.concatenate([kk, -kk], 2), np.concatenate([-kk, kk], 2)], 1)
+    dofs = np.concatenate([2 * e[:, :1] + np.arange(2), 2 * e[:, 1:] + np.arange(2)], axis=1)
+    rows = np.repeat(dofs, 4, axis=1).ravel()
+    cols = np.tile(dofs, (1, 4)).ravel()
+    n = 2 * len(x)
+    return scipy.sparse.csr_matrix((blk.ravel(), (rows, cols)), shape=(n, n))

@@ -104,3 +104,44 @@ def effective_clamp(tip_deflection: float, q: float, EI: float, length: float) -
         raise ValueError(f"need a positive deflection, load and EI; got {tip_deflection!r}, "
                          f"{q!r}, {EI!r}")
     return length - (8.0 * EI * tip_deflection / q) ** 0.25
+
+
+def _rhs_reissner(alpha, ext, shear):
+    def f(s, y):
+        th, k, _, _ = y
+        c, sn = np.cos(th), np.sin(th)
+        eps, gam = ext * (1.0 - s) * sn, shear * (1.0 - s) * c
+        xp = (1.0 + eps) * c - gam * sn
+        return np.vstack([k, -alpha * (1.0 - s) * xp, xp, -(1.0 + eps) * sn - gam * c])
+    return f
+
+
+def elastica_shear(alpha: float, ext: float = 0.0, shear: float = 0.0, n_mesh: int = 201,
+                   n_steps: int = 12) -> dict:
+    """Reissner's extensible, shearable elastica of a cantilever under a uniform dead load q
+    (-y): the Timoshenko correction of ``elastica`` for deep beams. With s = arc length / L,
+    theta the downward section rotation, ``alpha = q L^3 / EI``, ``ext = q L / EA`` and
+    ``shear = q L / (kappa G A)``, the section force is q L (1 - s) upward on the outer part, with
+    tension T = q L (1 - s) sin(theta) and shear V = q L (1 - s) cos(theta), and
+
+        theta' = M / EI,   (M / EI)' = -alpha (1 - s) x',
+        x' = (1 + eps) cos(theta) - gam sin(theta),   y' = -(1 + eps) sin(theta) - gam cos(theta),
+        eps = ext (1 - s) sin(theta),   gam = shear (1 - s) cos(theta),
+
+    theta(0) = 0, theta'(1) = 0, x(0) = y(0) = 0. ``ext = shear = 0`` is ``elastica``; the small-
+    load tip deflection is alpha/8 + shear/2 (times L). Returns ``s, x, y, theta, tip_v, tip_u``
+    (lengths over L) like ``elastica``."""
+    if not (math.isfinite(alpha) and alpha > 0 and ext >= 0 and shear >= 0):
+        raise ValueError(f"elastica_shear needs alpha > 0, ext >= 0, shear >= 0, got "
+                         f"{alpha!r}, {ext!r}, {shear!r}")
+    s = np.linspace(0.0, 1.0, n_mesh)
+    y = np.vstack([np.zeros_like(s), np.zeros_like(s), s, np.zeros_like(s)])
+    for lam in np.linspace(1.0 / n_steps, 1.0, n_steps):
+        sol = solve_bvp(_rhs_reissner(lam * alpha, lam * ext, lam * shear), _bc, s, y, tol=1e-8,
+                        max_nodes=100_000)
+        if not sol.success:
+            raise RuntimeError(f"elastica_shear: solve_bvp failed at alpha = {lam * alpha:.4g}: "
+                               f"{sol.message}")
+        y = sol.sol(s)
+    return {"s": s, "x": y[2], "y": y[3], "theta": y[0], "tip_v": -float(y[3][-1]),
+            "tip_u": 1.0 - float(y[2][-1])}

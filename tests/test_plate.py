@@ -207,8 +207,8 @@ class TestPlateSystem:
     def test_registered_with_paper_metadata(self):
         from benchmarks.registry import CASES
 
-        case = CASES["plate_cantilever"]
-        assert case == PlateCase()
+        case = CASES["plate_hanging"]
+        assert case == PlateCase() and case.id == "plate_hanging"
         assert (case.n_train, case.n_test, case.n_frames) == (30, 6, 501)
         assert case.save_dt == 0.003 and case.dt <= case.save_dt
         lo, hi = case.youngs_train
@@ -417,14 +417,14 @@ def test_spring_calibration():
 
 
 def test_cli_static_writes_one_frame(tmp_path):
-    """``meshbench simulate plate_cantilever --youngs Y --static --out F.npz``."""
+    """``meshbench simulate plate_hanging --youngs Y --static --out F.npz``."""
     from benchmarks.cli import main
     from groundtruth import store
 
     out = tmp_path / "static.npz"
-    assert main(["simulate", "plate_cantilever", "--youngs", "5e6", "--static",
+    assert main(["simulate", "plate_hanging", "--youngs", "5e6", "--static",
                  "--out", str(out)]) == 0
-    data = store.load_npz(out, "plate_cantilever", CASE.hash())
+    data = store.load_npz(out, "plate_hanging", CASE.hash())
     assert data["pos"].shape == (1, 1, 150, 3) and data["t"].tolist() == [0.0]
     assert data["cells"].shape == (2 * 2 * 49, 3) and data["node_type"].sum() == 6
     np.testing.assert_allclose(data["pos"][0, 0], CASE.solve_static(5e6))
