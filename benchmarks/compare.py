@@ -55,10 +55,22 @@ def read_csv(path) -> pd.DataFrame:
 
 def compare(old: pd.DataFrame, new: pd.DataFrame, rtol: float = 1e-6, atol: float = 0.0,
             keys=None, ignore=(), default_ignore: bool = True,
-            names=("baseline", "new")) -> CompareResult:
-    """Match rows on key columns and report values that moved beyond tolerance."""
+            names=("baseline", "new"), tolerances: pd.DataFrame | None = None,
+            subset: bool = False) -> CompareResult:
+    """Match rows on key columns and report values that moved beyond tolerance.
+
+    ``tolerances`` (a ``tolerance.csv``, see ``derive_tolerances``): a relative tolerance per
+    row and value column, matched on the file's key columns; then only the value columns it
+    covers are compared (``rtol`` applies to rows it does not cover). ``subset``: rows of
+    the baseline missing from ``new`` are not an error (a one-seed re-run against a
+    multi-seed baseline, or ``--only``); rows of ``new`` missing from the baseline still are.
+    """
     if rtol < 0 or atol < 0 or not np.isfinite(rtol) or not np.isfinite(atol):
         raise CompareError(f"rtol and atol must be finite and >= 0, got rtol={rtol}, atol={atol}")
+    if tolerances is not None:
+        tol_cols = set(tolerances["column"])
+        ignore = tuple(ignore) + tuple(c for c in old.columns if c not in tol_cols
+                                       and pd.api.types.is_float_dtype(old[c]))
     ignored = [c for c in old.columns if c in set(ignore)
                or (default_ignore and DEFAULT_IGNORE.search(c) and c not in (keys or ()))]
     missing_new = [c for c in old.columns if c not in new.columns and c not in ignored]
@@ -83,25 +95,94 @@ def compare(old: pd.DataFrame, new: pd.DataFrame, rtol: float = 1e-6, atol: floa
     o, n = (df[keys + values].astype({k: str for k in keys}) for df in (old, new))
     merged = o.merge(n, on=keys, how="outer", suffixes=("_old", "_new"), indicator=True)
     only = merged[merged["_merge"] != "both"]
+    if subset:
+        only = only[only["_merge"] == "right_only"]
     if not only.empty:
         side = only["_merge"].map({"left_only": f"only in {names[0]}",
                                    "right_only": f"only in {names[1]}"})
         rows = [f"{s}: {r}" for s, r in zip(side, only[keys].head(5).to_dict("records"))]
         raise CompareError(f"{len(only)} rows are present in one file only: " + "; ".join(rows))
+    merged = merged[merged["_merge"] == "both"].reset_index(drop=True)
+    if merged.empty:
+        raise CompareError(f"{names[0]} and {names[1]} have no row in common (keys {keys})")
     moved = []
     for c in values:
         a, b = merged[f"{c}_old"], merged[f"{c}_new"]
+        r = _row_rtol(merged, c, tolerances, rtol, names[0])
         if pd.api.types.is_numeric_dtype(a) and pd.api.types.is_numeric_dtype(b):
             a, b = a.to_numpy(float), b.to_numpy(float)
-            close = np.isclose(b, a, rtol=rtol, atol=atol, equal_nan=True)
+            close = (np.abs(b - a) <= atol + r * np.abs(a)) | (np.isnan(a) & np.isnan(b)) \
+                | (a == b)
         else:
             close = (a.astype(str) == b.astype(str)).to_numpy()
         for i in np.flatnonzero(~close):
             row = {k: merged[k].iloc[i] for k in keys}
             old_v, new_v = merged[f"{c}_old"].iloc[i], merged[f"{c}_new"].iloc[i]
             rel = _rel(old_v, new_v)
-            moved.append({**row, "column": c, "old": old_v, "new": new_v, "rel_change": rel})
+            moved.append({**row, "column": c, "old": old_v, "new": new_v, "rel_change": rel,
+                          "rtol": r[i]})
     return CompareResult(keys, values, ignored, len(merged), pd.DataFrame(moved))
+
+
+def _row_rtol(merged: pd.DataFrame, column: str, tolerances, rtol: float, name) -> np.ndarray:
+    """The relative tolerance of every merged row for ``column``."""
+    out = np.full(len(merged), float(rtol))
+    if tolerances is None:
+        return out
+    tk = [c for c in tolerances.columns if c not in TOLERANCE_INFO]
+    missing = [k for k in tk if k not in merged.columns]
+    if missing:
+        raise CompareError(f"tolerance file: key columns {missing} are not key columns of "
+                           f"{name}")
+    t = tolerances[tolerances["column"] == column][tk + ["rtol"]].astype({k: str for k in tk})
+    if t.empty:
+        return out
+    m = merged[tk].merge(t, on=tk, how="left")
+    return np.where(m["rtol"].notna(), m["rtol"].to_numpy(float), out)
+
+
+#: Columns of a ``tolerance.csv`` that are not row keys.
+TOLERANCE_INFO = ("column", "rtol", "n_seeds", "seed_mean", "sigma_log", "factor", "floor")
+
+#: How ``derive_tolerances`` turns the spread over seeds into a tolerance (docs/SUITE.md).
+TOLERANCE_FACTOR = 3.0
+TOLERANCE_FLOOR = 0.01
+TOLERANCE_COLUMNS = ("rmse_mean", "rmse_std")
+
+
+def derive_tolerances(table: pd.DataFrame, factor: float = TOLERANCE_FACTOR,
+                      floor: float = TOLERANCE_FLOOR, columns=TOLERANCE_COLUMNS,
+                      name: str = "rmse_at_step.csv") -> pd.DataFrame:
+    """Per-row relative tolerances from the spread of a multi-seed results table.
+
+    For every row key without the seed (case, model, ..., step) and value column, with
+    ``v_s`` the values of the seeds: ``sigma_log`` = sample std of ``ln v_s``; a re-run of
+    one seed (another machine, other kernels: a fresh draw of the training's round-off) is
+    allowed to differ from the baseline's value of that seed by the band of the difference
+    of two draws, ``factor`` standard deviations wide: ``rtol = max(floor, exp(factor *
+    sqrt(2) * sigma_log) - 1)``.
+    """
+    if "seed" not in table.columns:
+        raise CompareError(f"{name}: no seed column; tolerances come from several seeds")
+    keys = [c for c in table.columns if c not in ("seed", "n_trajectories")
+            and not pd.api.types.is_float_dtype(table[c])]
+    rows = []
+    for kv, g in table.groupby(keys, sort=True):
+        n = g["seed"].nunique()
+        if n < 2:
+            raise CompareError(f"{name}: {dict(zip(keys, kv))} has {n} seed; tolerances need "
+                               "at least 2 seeds per run (meshbench run --seeds 3)")
+        for c in columns:
+            v = g[c].to_numpy(float)
+            if (v > 0).all() and np.isfinite(v).all():
+                sig = float(np.std(np.log(v), ddof=1))
+                r = max(floor, float(np.expm1(factor * np.sqrt(2.0) * sig)))
+            else:  # zero or non-finite values: no relative spread to measure
+                sig, r = float("nan"), float("inf") if not np.isfinite(v).all() else floor
+            rows.append({**dict(zip(keys, kv)), "column": c, "n_seeds": n,
+                         "seed_mean": float(v.mean()), "sigma_log": sig, "factor": factor,
+                         "floor": floor, "rtol": r})
+    return pd.DataFrame(rows)
 
 
 def _rel(a, b):
