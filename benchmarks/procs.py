@@ -5,8 +5,10 @@ environment that makes CPU results reproducible across machines of the same kind
   goes to the whole foreground process group; the parent decides what stops), turns SIGTERM
   into ``KeyboardInterrupt`` so ``finally`` blocks run, and asks Linux to SIGKILL it when
   its parent dies (``PR_SET_PDEATHSIG``), so a killed ``meshbench`` leaves no worker behind.
-- ``stop_pool``: cancel what is queued and terminate the running workers (TERM, then KILL
-  after ``grace`` seconds) instead of waiting for them, as ``with ProcessPoolExecutor`` does.
+- ``run_tasks``: one spawned process per task, ``jobs`` at a time; on Ctrl-C the running
+  ones are stopped and the queued ones never start. ``stop_pool`` does the same for a
+  ``ProcessPoolExecutor`` (``generate``): cancel what is queued, terminate the workers (TERM,
+  then KILL after ``grace`` seconds) instead of waiting for them.
 - ``DirLock``: an advisory ``flock`` on ``DIR/.lock``; the kernel drops it when its holder
   dies, so a lock can never go stale, and the pid written in the file names the holder.
 - ``REPRO_ENV``: the kernel-dispatch settings pinned in every worker (see docs/SUITE.md,
@@ -54,6 +56,8 @@ def apply_repro_env() -> dict:
 
 
 def _raise_interrupt(signum, frame):
+    # the first SIGTERM unwinds (finally blocks, temporary files); a second one kills
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     raise KeyboardInterrupt(f"signal {signum}")
 
 
@@ -78,19 +82,89 @@ def worker_init(parent_pid: int | None = None) -> None:
 
 
 def stop_pool(pool, grace: float = 5.0) -> None:
-    """Cancel queued work and stop the running workers of a ``ProcessPoolExecutor`` now."""
-    procs = list((getattr(pool, "_processes", None) or {}).values())
+    """Cancel queued work and stop the running workers of a ``ProcessPoolExecutor`` now
+    (``stop_processes``) instead of waiting for them as ``with ProcessPoolExecutor`` does."""
+    plist = list((getattr(pool, "_processes", None) or {}).values())
     pool.shutdown(wait=False, cancel_futures=True)
-    for p in procs:
+    stop_processes(plist, grace)
+
+
+class WorkerDied(RuntimeError):
+    """A task's process ended without a result (killed, out of memory)."""
+
+
+def _task_main(queue, key, fn, args, parent_pid):
+    worker_init(parent_pid)
+    try:
+        out = ("ok", fn(*args))
+    except Exception as e:  # noqa: BLE001 - reported to the parent, which decides
+        out = ("error", (type(e).__name__, str(e), isinstance(e, (ValueError, RuntimeError,
+                                                                   FloatingPointError, OSError))))
+    except KeyboardInterrupt:
+        out = ("interrupted", None)
+    queue.put((key, *out))
+
+
+def run_tasks(tasks: dict, jobs: int, on_result, poll: float = 0.5) -> None:
+    """Run ``fn(*args)`` for every ``key: (fn, args)`` of ``tasks``, each in a fresh spawned
+    process (its own peak memory, no state carried between tasks), ``jobs`` at a time, in
+    order. ``on_result(key, kind, value)`` gets ``kind`` "ok" (value: the return value),
+    "error" (value: (type name, message, is an expected error)) or "died" (value: the exit
+    code). On any exception in the parent (Ctrl-C) the running processes are stopped
+    (``stop_processes``) and the queued tasks never start."""
+    import multiprocessing
+    import queue as queue_mod
+
+    ctx = multiprocessing.get_context("spawn")
+    q = ctx.Queue()
+    todo = list(tasks)
+    running: dict = {}
+    try:
+        while todo or running:
+            while todo and len(running) < jobs:
+                key = todo.pop(0)
+                fn, args = tasks[key]
+                p = ctx.Process(target=_task_main, args=(q, key, fn, args, os.getpid()),
+                                daemon=False)
+                p.start()
+                running[key] = p
+            try:
+                key, kind, value = q.get(timeout=poll)
+            except queue_mod.Empty:
+                for key, p in list(running.items()):
+                    if not p.is_alive() and p.exitcode not in (None, 0):
+                        del running[key]
+                        on_result(key, "died", p.exitcode)
+                continue
+            p = running.pop(key, None)
+            if p is not None:
+                p.join()
+            on_result(key, kind, value)
+    except BaseException:
+        stop_processes(list(running.values()))
+        raise
+    finally:
+        q.close()
+
+
+def stop_processes(plist, grace: float = 5.0) -> None:
+    """SIGTERM (the process unwinds), after 1 s SIGTERM again (default action: it dies),
+    after ``grace`` s SIGKILL."""
+    for p in plist:
         with contextlib.suppress(Exception):
             p.terminate()
-    deadline = time.monotonic() + grace
-    for p in procs:
+    for wait, last in ((1.0, False), (grace, True)):
+        deadline = time.monotonic() + wait
+        for p in plist:
+            with contextlib.suppress(Exception):
+                p.join(max(0.0, deadline - time.monotonic()))
+        for p in plist:
+            with contextlib.suppress(Exception):
+                if p.is_alive():
+                    p.kill() if last else p.terminate()
+    for p in plist:
         with contextlib.suppress(Exception):
-            p.join(max(0.0, deadline - time.monotonic()))
-            if p.is_alive():
-                p.kill()
-                p.join(1.0)
+            p.join(1.0)
 
 
 class LockBusy(RuntimeError):

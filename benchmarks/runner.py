@@ -22,14 +22,11 @@ from __future__ import annotations
 
 import datetime
 import json
-import multiprocessing
 import os
 import platform
 import shutil
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 import numpy as np
@@ -114,10 +111,6 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
         return _execute(spec, run_dir, data_dir, progress, device)
     finally:
         lock.release()
-
-
-def _init_worker(parent_pid: int) -> None:
-    procs.worker_init(parent_pid)
 
 
 def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str) -> dict:
@@ -265,41 +258,39 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
     records: dict = {}
     failures: dict = {}
     procs.apply_repro_env()  # inherited by the spawned workers (see procs.REPRO_ENV)
-    pool = ProcessPoolExecutor(max_workers=min(jobs, len(runs)),
-                               mp_context=multiprocessing.get_context("spawn"),
-                               max_tasks_per_child=1, initializer=_init_worker,
-                               initargs=(os.getpid(),))
-    try:
-        futs = {pool.submit(execute_run, r, str(runs_dir / r.run_id),
-                            None if data_dir is None else str(data_dir), threads,
-                            tuple(str(p) for p in plugin_files), progress and jobs == 1,
-                            device): r for r in runs}
-        for i, fut in enumerate(as_completed(futs), 1):
-            r = futs[fut]
-            try:
-                rec = fut.result()
-            except (ValueError, FloatingPointError, RuntimeError, OSError) as e:
-                if isinstance(e, BrokenProcessPool):
-                    raise
-                failures[r.run_id] = f"{type(e).__name__}: {e}"
-                _log(f"[{i}/{len(runs)}] {r.run_id}: FAILED: {e}")
-                continue
-            records[r.run_id] = rec
+    by_id = {r.run_id: r for r in runs}
+    tasks = {r.run_id: (execute_run, (r, str(runs_dir / r.run_id),
+                                      None if data_dir is None else str(data_dir), threads,
+                                      tuple(str(p) for p in plugin_files),
+                                      progress and jobs == 1, device)) for r in runs}
+    done = []
+
+    def on_result(run_id, kind, value):
+        done.append(run_id)
+        i = len(done)
+        if kind == "ok":
+            records[run_id] = rec = value
             how = "reused" if rec.get("reused") else f"trained in {rec['train_wall_time_s']:.0f} s"
-            _log(f"[{i}/{len(runs)}] {r.run_id}: {how}; test RMSE {rec['test_rmse_m']:.4g} m "
+            _log(f"[{i}/{len(runs)}] {run_id}: {how}; test RMSE {rec['test_rmse_m']:.4g} m "
                  f"(no motion {rec['test_no_motion_rmse_m']:.4g} m)")
+            return
+        if kind == "died":
+            msg = (f"its process died (exit code {value}: killed, or out of memory); "
+                   "its finished epochs are kept")
+        elif kind == "interrupted":
+            msg = "its process was interrupted"
+        else:
+            name, text, expected = value
+            if not expected:  # a bug, not a user error: say so loudly
+                _log(f"{run_id}: unexpected {name}: {text}")
+            msg = f"{name}: {text}"
+        failures[run_id] = msg
+        _log(f"[{i}/{len(runs)}] {by_id[run_id].run_id}: FAILED: {msg}")
+
+    try:
+        procs.run_tasks(tasks, min(jobs, len(runs)), on_result)
     except KeyboardInterrupt:
-        procs.stop_pool(pool)
         raise SuiteInterrupted(suite.name, sorted(records), runs_dir) from None
-    except BrokenProcessPool:
-        procs.stop_pool(pool)
-        raise SuiteError(f"a worker process of suite {suite.name!r} died (killed, or out of "
-                         f"memory); finished runs are kept in {runs_dir}: rerun the same "
-                         "command to resume") from None
-    except BaseException:
-        procs.stop_pool(pool)
-        raise
-    pool.shutdown(wait=True)
     if failures:
         raise SuiteError(f"{len(failures)} run(s) of suite {suite.name!r} failed (finished "
                          "runs are kept; fix the cause and rerun the same command to resume): "

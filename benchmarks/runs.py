@@ -192,6 +192,12 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
         # a session is recorded only if it trained at least one epoch (history.csv moved):
         # a failure before the first epoch left nothing behind and is not a session
         if not (history.exists() and history.stat().st_mtime_ns != before):
+            from meshodenet.train import CheckpointError
+
+            if resume and isinstance(e, CheckpointError):
+                raise CheckpointError(f"--resume: {e}; this run cannot continue: start it "
+                                      f"again with `rm -r {out}` and the same command "
+                                      "without --resume") from None
             raise
         session["wall_time_s"] = round(time.time() - t_start, 2)
         store.save_json(sessions_path, sessions + [session])

@@ -50,7 +50,7 @@ def run(args):
                       bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} s") as bar:
                 res = case.simulate(y, t_end, progress=lambda t: bar.update(t - bar.n))
             t, pos, vel = res["t"], res["pos"][None], res["vel"][None]
-    except ConvergenceError as e:
+    except (ConvergenceError, np.linalg.LinAlgError, FloatingPointError) as e:
         lo, hi = case.youngs_train
         raise ConvergenceError(f"--youngs {y:g} Pa: the solver failed ({e}); {case.id} is "
                                f"built for moduli around {lo:g}..{hi:g} Pa (its training "
