@@ -15,7 +15,6 @@ import os
 import signal
 import subprocess
 import sys
-import textwrap
 import time
 from pathlib import Path
 
@@ -90,16 +89,42 @@ def one_line_error(stderr: str, *needles) -> str:
     return last
 
 
+TINY = "rod_tiny_faults"
+PLUGIN = f"""
+from benchmarks.registry import register_case
+from benchmarks.suites import RunSpec, Suite, register_suite
+from groundtruth.cases import RodCase
+
+# rod_falling's rod, 4 + 2 trajectories of 0.5 s: generated in about a second
+register_case(RodCase(id="{TINY}", n_train=4, n_test=2, t_end=0.5), overwrite=True)
+register_suite(Suite("faults_long", "a run long enough to interrupt, then a queued one", (
+    RunSpec("{TINY}", "mgn", "smoke", overrides=("train.epochs=100000",)),
+    RunSpec("{TINY}", "meshodenet", "smoke"))), overwrite=True)
+register_suite(Suite("faults_pair", "two short runs", (
+    RunSpec("{TINY}", "meshodenet", "smoke"), RunSpec("{TINY}", "mgn", "smoke"))),
+    overwrite=True)
+"""
+
+
 @pytest.fixture(scope="module")
-def cantilever(tmp_path_factory):
-    """rod_cantilever data (6 short trajectories, ~20 s) and a smoke MGN run trained on it."""
+def tiny(tmp_path_factory):
+    """A plugin with a tiny case and two suites, its data, and a smoke MGN run on it."""
+    from benchmarks import plugins, registry, suites
+
     root = tmp_path_factory.mktemp("faults")
+    plugin = root / "faults_plugin.py"
+    plugin.write_text(PLUGIN)
     data = root / "data"
-    assert main(["generate", "rod_cantilever", "--data-dir", str(data), "--no-progress"]) == 0
+    pl = ["--plugin", str(plugin)]
+    assert main(pl + ["generate", TINY, "--data-dir", str(data), "--no-progress"]) == 0
     run = root / "mgn"
-    assert main(["train", "--case", "rod_cantilever", "--model", "mgn", "--preset", "smoke",
-                 "--out", str(run), "--data-dir", str(data), "--no-progress"]) == 0
-    return data, run
+    assert main(pl + ["train", "--case", TINY, "--model", "mgn", "--preset", "smoke",
+                      "--out", str(run), "--data-dir", str(data), "--no-progress"]) == 0
+    yield pl, data, run
+    registry.CASES.pop(TINY, None)
+    for name in ("faults_long", "faults_pair"):
+        suites.SUITES.pop(name, None)
+    plugins._loaded.discard(str(plugin.resolve()))
 
 
 def _copy_run(src: Path, dst: Path) -> Path:
@@ -150,31 +175,19 @@ def test_sigkill_of_generate_leaves_no_worker(tmp_path):
 
 
 # --- Ctrl-C and kill of run -----------------------------------------------------------------
-SUITE_PLUGIN = """
-from benchmarks.suites import RunSpec, Suite, register_suite
-register_suite(Suite("faults", "two rod_cantilever runs long enough to interrupt", (
-    RunSpec("rod_cantilever", "mgn", "quick", overrides=("train.epochs=40",)),
-    RunSpec("rod_cantilever", "meshodenet", "smoke"))), overwrite=True)
-"""
-
-
-def _start_run(tmp_path, data):
-    plugin = tmp_path / "suite_plugin.py"
-    plugin.write_text(textwrap.dedent(SUITE_PLUGIN))
+def _start_run(tmp_path, pl, data):
     runs = tmp_path / "runs"
-    args = ["--plugin", str(plugin), "run", "--suite", "faults", "--data-dir", str(data),
-            "--runs-dir", str(runs), "--results", str(tmp_path / "res"), "--no-progress",
-            "--no-figures"]
-    p = start(args)
-    first = runs / "rod_cantilever-mgn-quick-s0"
-    wait_until(lambda: (first / "config.json").exists(), 120, "training to start")
-    time.sleep(1.0)
-    return p, args, runs, first
+    p = start(pl + ["run", "--suite", "faults_long", "--data-dir", str(data), "--runs-dir",
+                    str(runs), "--results", str(tmp_path / "res"), "--no-progress",
+                    "--no-figures"])
+    first = runs / f"{TINY}-mgn-smoke-s0"
+    wait_until(lambda: (first / "history.csv").exists(), 120, "the first epoch")
+    return p, runs, first
 
 
-def test_ctrl_c_stops_run_and_queued_runs_never_start(tmp_path, cantilever):
-    data, _ = cantilever
-    p, args, runs, first = _start_run(tmp_path, data)
+def test_ctrl_c_stops_run_and_queued_runs_never_start(tmp_path, tiny):
+    pl, data, _ = tiny
+    p, runs, first = _start_run(tmp_path, pl, data)
     workers = descendants(p.pid)
     os.killpg(p.pid, signal.SIGINT)
     t0 = time.monotonic()
@@ -183,19 +196,18 @@ def test_ctrl_c_stops_run_and_queued_runs_never_start(tmp_path, cantilever):
     assert p.returncode == 130, err
     one_line_error(err, "interrupted", "last.pt", "resume with `meshbench --plugin")
     wait_until(lambda: not any(alive(w) for w in workers), 5, "the workers to exit")
-    assert not (runs / "rod_cantilever-meshodenet-smoke-s0" / "last.pt").exists()
+    assert not (runs / f"{TINY}-meshodenet-smoke-s0" / "last.pt").exists()
     from meshodenet.train import load_checkpoint
 
-    if (first / "last.pt").exists():  # finished epochs are kept, readable
-        assert load_checkpoint(first / "last.pt")["epoch"] >= 1
+    assert load_checkpoint(first / "last.pt")["epoch"] >= 1  # finished epochs are kept
     assert not list(runs.rglob("*.tmp"))
     # the lock of the interrupted run is free again
     procs.DirLock(first).acquire().release()
 
 
-def test_sigkill_of_run_leaves_no_worker_and_no_lock(tmp_path, cantilever):
-    data, _ = cantilever
-    p, args, runs, first = _start_run(tmp_path, data)
+def test_sigkill_of_run_leaves_no_worker_and_no_lock(tmp_path, tiny):
+    pl, data, _ = tiny
+    p, runs, first = _start_run(tmp_path, pl, data)
     workers = descendants(p.pid)
     assert workers
     p.kill()
@@ -204,6 +216,46 @@ def test_sigkill_of_run_leaves_no_worker_and_no_lock(tmp_path, cantilever):
     # the dead worker's pid is still written in .lock, but the lock itself went with it
     assert (first / ".lock").exists()
     procs.DirLock(first).acquire().release()
+
+
+def test_ctrl_c_stops_train_and_the_message_resumes_it(tmp_path, tiny):
+    pl, data, _ = tiny
+    out = tmp_path / "run"
+    args = pl + ["train", "--case", TINY, "--model", "mgn", "--preset", "smoke",
+                 "--epochs", "100000", "--out", str(out), "--data-dir", str(data),
+                 "--no-progress"]
+    p = start(args)
+    wait_until(lambda: (out / "history.csv").exists(), 120, "the first epoch")
+    os.killpg(p.pid, signal.SIGINT)
+    t0 = time.monotonic()
+    _, err = p.communicate(timeout=30)
+    assert time.monotonic() - t0 < 10 and p.returncode == 130, err
+    msg = one_line_error(err, "last.pt keeps the last finished epoch", "--resume`")
+    from meshodenet.train import load_checkpoint
+
+    epoch = load_checkpoint(out / "last.pt")["epoch"]
+    sessions = json.loads((out / "sessions.json").read_text())
+    assert sessions[-1]["ended_by"] == "KeyboardInterrupt"  # it trained: a session
+    # the command in the message continues the run (here for one more epoch)
+    cmd = msg.split("`")[1].split()[1:]  # (no spaces in these paths)
+    assert cmd[-1] == "--resume"
+    cmd[cmd.index("--epochs") + 1] = str(epoch + 1)
+    assert main(cmd) == 0
+    assert load_checkpoint(out / "last.pt")["epoch"] == epoch + 1
+
+
+def test_ctrl_c_stops_crosscheck(tmp_path):
+    p = start(["crosscheck", "rod_cantilever", "--out-dir", str(tmp_path / "cc"),
+               "--no-progress"])
+    time.sleep(4.0)
+    os.killpg(p.pid, signal.SIGINT)
+    t0 = time.monotonic()
+    _, err = p.communicate(timeout=30)
+    if p.returncode == 0:
+        pytest.skip("the cross-check finished before the interrupt")
+    assert time.monotonic() - t0 < 10 and p.returncode == 130, err
+    one_line_error(err, "interrupted", "meshbench crosscheck rod_cantilever")
+    assert not list(tmp_path.rglob("*.tmp"))
 
 
 # --- locks ----------------------------------------------------------------------------------
@@ -237,30 +289,30 @@ def test_stale_lock_is_taken_over_and_live_lock_is_reported(tmp_path):
 
 
 # --- two suites on one runs directory -------------------------------------------------------
-def _race(tmp_path, data, delay: float):
+def _race(tmp_path, pl, suite, data, delay: float):
     runs = tmp_path / "runs"
     ps = []
     for k in range(2):
         if k:
             time.sleep(delay)
-        ps.append(start(["run", "--suite", "smoke", "--data-dir", str(data), "--runs-dir",
-                         str(runs), "--results", str(tmp_path / f"res{k}"), "--no-progress",
-                         "--no-figures"]))
+        ps.append(start(pl + ["run", "--suite", suite, "--data-dir", str(data), "--runs-dir",
+                              str(runs), "--results", str(tmp_path / f"res{k}"),
+                              "--no-progress", "--no-figures"]))
     outs = [p.communicate(timeout=600) for p in ps]
     for p, (_, err) in zip(ps, outs):
         assert p.returncode == 0, err
-    a, b = (pd.read_csv(tmp_path / f"res{k}" / "smoke" / "rmse_at_step.csv", comment="#")
+    a, b = (pd.read_csv(tmp_path / f"res{k}" / suite / "rmse_at_step.csv", comment="#")
             for k in range(2))
     pd.testing.assert_frame_equal(a, b)
-    m = [pd.read_csv(tmp_path / f"res{k}" / "smoke" / "metrics.csv", comment="#")
+    m = [pd.read_csv(tmp_path / f"res{k}" / suite / "metrics.csv", comment="#")
          for k in range(2)]
     pd.testing.assert_frame_equal(*m)
     return outs
 
 
-def test_two_suites_on_one_runs_dir_cooperate(tmp_path, cantilever):
-    data, _ = cantilever
-    _race(tmp_path, data, 2.0)
+def test_two_suites_on_one_runs_dir_cooperate(tmp_path, tiny):
+    pl, data, _ = tiny
+    _race(tmp_path, pl, "faults_pair", data, 2.0)
     _each_run_trained_once(tmp_path / "runs")
 
 
@@ -271,17 +323,17 @@ def _each_run_trained_once(runs: Path):
 
 @pytest.mark.slow
 def test_two_suites_in_a_fresh_directory_9s_apart(tmp_path):
-    _race(tmp_path, tmp_path / "data", 9.0)
+    _race(tmp_path, [], "smoke", tmp_path / "data", 9.0)
     _each_run_trained_once(tmp_path / "runs")
 
 
 # --- corrupt and foreign stored files -------------------------------------------------------
-def test_truncated_best_checkpoint_under_rollout(tmp_path, cantilever, capsys):
-    data, run = cantilever
+def test_truncated_best_checkpoint_under_rollout(tmp_path, tiny, capsys):
+    pl, data, run = tiny
     r = _copy_run(run, tmp_path / "r")
     good = (r / "best.pt").read_bytes()
     (r / "best.pt").write_bytes(good[: len(good) // 2])
-    rc = main(["rollout", "--run", str(r), "--split", "test", "--data-dir", str(data),
+    rc = main(pl + ["rollout", "--run", str(r), "--split", "test", "--data-dir", str(data),
                "--out", str(tmp_path / "p.npz")])
     assert rc == 2
     one_line_error(capsys.readouterr().err, "best.pt", "truncated or corrupt", "meshbench train")
@@ -289,11 +341,11 @@ def test_truncated_best_checkpoint_under_rollout(tmp_path, cantilever, capsys):
 
 
 @pytest.mark.parametrize("damage", ["truncated", "foreign", "other_model"])
-def test_bad_last_checkpoint_under_resume_is_clean_and_not_a_session(tmp_path, cantilever,
-                                                                      capsys, damage):
+def test_bad_last_checkpoint_under_resume_is_clean_and_not_a_session(tmp_path, tiny, capsys,
+                                                                      damage):
     import torch
 
-    data, run = cantilever
+    pl, data, run = tiny
     r = _copy_run(run, tmp_path / "r")
     good = (r / "last.pt").read_bytes()
     if damage == "truncated":
@@ -306,54 +358,43 @@ def test_bad_last_checkpoint_under_resume_is_clean_and_not_a_session(tmp_path, c
         torch.save(ck, r / "last.pt")
     sessions = (r / "sessions.json").read_bytes()
     history = (r / "history.csv").read_bytes()
-    rc = main(["train", "--case", "rod_cantilever", "--model", "mgn", "--preset", "smoke",
-               "--out", str(r), "--data-dir", str(data), "--resume", "--epochs", "3",
-               "--no-progress"])
+    rc = main(pl + ["train", "--case", TINY, "--model", "mgn", "--preset", "smoke",
+                    "--out", str(r), "--data-dir", str(data), "--resume", "--epochs", "3",
+                    "--no-progress"])
     assert rc == 2
     one_line_error(capsys.readouterr().err, "last.pt", f"rm -r {r}")
     assert (r / "sessions.json").read_bytes() == sessions  # the failure is not a session
     assert (r / "history.csv").read_bytes() == history
 
 
-def test_corrupt_test_split_fails_before_the_first_epoch(tmp_path, cantilever, capsys):
-    data, _ = cantilever
+def test_corrupt_test_split_fails_before_the_first_epoch(tmp_path, tiny, capsys):
+    pl, data, _ = tiny
     d2 = tmp_path / "data"
-    (d2 / "rod_cantilever").mkdir(parents=True)
-    for f in (data / "rod_cantilever").iterdir():
+    (d2 / TINY).mkdir(parents=True)
+    for f in (data / TINY).iterdir():
         if f.is_file():
-            (d2 / "rod_cantilever" / f.name).write_bytes(f.read_bytes())
-    t = d2 / "rod_cantilever" / "test.npz"
+            (d2 / TINY / f.name).write_bytes(f.read_bytes())
+    t = d2 / TINY / "test.npz"
     t.write_bytes(t.read_bytes()[:500])
     out = tmp_path / "run"
     t0 = time.monotonic()
-    rc = main(["train", "--case", "rod_cantilever", "--model", "mgn", "--preset", "smoke",
-               "--out", str(out), "--data-dir", str(d2), "--no-progress"])
+    rc = main(pl + ["train", "--case", TINY, "--model", "mgn", "--preset", "smoke",
+                    "--out", str(out), "--data-dir", str(d2), "--no-progress"])
     assert rc == 2 and time.monotonic() - t0 < 30
     one_line_error(capsys.readouterr().err, "test.npz",
-                   f"meshbench generate rod_cantilever --force --data-dir {d2}")
+                   f"meshbench generate {TINY} --force --data-dir {d2}")
     assert not (out / "last.pt").exists() and not (out / "sessions.json").exists()
 
 
-TINY_PLUGIN = """
-from benchmarks.registry import register_case
-from groundtruth.cases import RodCase
-register_case(RodCase(id="rod_tiny_faults", n_nodes=7, t_end=0.3, n_train=3, n_test=2),
-              overwrite=True)
-"""
-
-
-def test_generate_repairs_unreadable_meta_without_force(tmp_path, capsys):
-    plugin = tmp_path / "tiny.py"
-    plugin.write_text(TINY_PLUGIN)
+def test_generate_repairs_unreadable_meta_without_force(tmp_path, tiny, capsys):
+    pl, _, _ = tiny
     data = tmp_path / "data"
-    gen = ["--plugin", str(plugin), "generate", "rod_tiny_faults", "--data-dir", str(data),
-           "--no-progress"]
+    gen = pl + ["generate", TINY, "--data-dir", str(data), "--no-progress"]
     assert main(gen) == 0
-    meta = data / "rod_tiny_faults" / "meta.json"
+    meta = data / TINY / "meta.json"
     good = json.loads(meta.read_text())
     meta.write_text('{"case_id": "rod_tin')  # truncated JSON
-    with pytest.raises(store.StoreError,
-                       match=f"meshbench generate rod_tiny_faults --data-dir {data}"):
+    with pytest.raises(store.StoreError, match=f"meshbench generate {TINY} --data-dir {data}"):
         store.read_meta(meta.parent)  # the hint carries the user's --data-dir
     assert main(gen) == 0  # repaired without --force
     again = json.loads(meta.read_text())
