@@ -288,6 +288,20 @@ def test_stale_lock_is_taken_over_and_live_lock_is_reported(tmp_path):
         holder.join(10)
 
 
+def test_train_into_a_run_another_process_trains_is_refused(tmp_path, tiny, capsys):
+    pl, data, run = tiny
+    r = _copy_run(run, tmp_path / "r")
+    held = procs.DirLock(r).acquire()  # as a suite's worker holds it
+    try:
+        rc = main(pl + ["train", "--case", TINY, "--model", "mgn", "--preset", "smoke",
+                        "--out", str(r), "--data-dir", str(data), "--resume", "--no-progress"])
+    finally:
+        held.release()
+    assert rc == 2
+    one_line_error(capsys.readouterr().err, f"{r} is in use by process {os.getpid()}",
+                   "another --out")
+
+
 # --- two suites on one runs directory -------------------------------------------------------
 def _race(tmp_path, pl, suite, data, delay: float):
     runs = tmp_path / "runs"
