@@ -3,7 +3,7 @@
 Rows are matched on their *key* columns; every other numeric column is a *value* compared
 with ``|new - old| <= atol + rtol * |old|`` (NaN equals NaN). Columns of provenance that
 legitimately differ between machines and runs (wall times, peak memory, git SHA, library
-versions, timestamps, device, threads) are ignored by default.
+versions, timestamps, device, threads, CPU and kernel settings) are ignored by default.
 
 Keys default to the columns that are not floating point (ids, seeds, trajectory and step
 indices); pass ``keys`` to choose them. Exit codes of the command: 0 within tolerance,
@@ -20,7 +20,8 @@ import numpy as np
 import pandas as pd
 
 DEFAULT_IGNORE = re.compile(
-    r"(wall|peak_mem|_time_s$|git_sha|timestamp|created|device|threads|hostname|platform|"
+    r"(wall|peak_mem|peak_rss|_time_s$|git_sha|timestamp|created|device|threads|hostname|"
+    r"platform|^cpu_|^kernel_env$|^machine$|"
     r"version|^python$|^numpy$|^scipy$|^torch|^pandas$|^meshio$|^scikit.fem$)")
 
 
