@@ -143,12 +143,16 @@ def _row_rtol(merged: pd.DataFrame, column: str, tolerances, rtol: float, name) 
 
 
 #: Columns of a ``tolerance.csv`` that are not row keys.
-TOLERANCE_INFO = ("column", "rtol", "n_seeds", "seed_mean", "sigma_log", "factor", "floor")
+TOLERANCE_INFO = ("column", "rtol", "n_seeds", "seed_mean", "sigma_log", "sigma_pooled",
+                  "factor", "floor")
 
 #: How ``derive_tolerances`` turns the spread over seeds into a tolerance (docs/SUITE.md).
 TOLERANCE_FACTOR = 3.0
 TOLERANCE_FLOOR = 0.01
-TOLERANCE_COLUMNS = ("rmse_mean", "rmse_std")
+#: The gated column: the paper's number. rmse_std (the spread over test trajectories) is
+#: not gated: between two legitimate draws of MeshGraphNet on the rod it moved by up to 83 %
+#: while two seeds disagreed by at most 12 % (docs/SUITE.md), too noisy to gate on a few seeds.
+TOLERANCE_COLUMNS = ("rmse_mean",)
 
 
 def derive_tolerances(table: pd.DataFrame, factor: float = TOLERANCE_FACTOR,
@@ -156,16 +160,17 @@ def derive_tolerances(table: pd.DataFrame, factor: float = TOLERANCE_FACTOR,
                       name: str = "rmse_at_step.csv") -> pd.DataFrame:
     """Per-row relative tolerances from the spread of a multi-seed results table.
 
-    For every row key without the seed (case, model, ..., step) and value column, with
-    ``v_s`` the values of the seeds: ``sigma_log`` = sample std of ``ln v_s``; a re-run of
-    one seed (another machine, other kernels: a fresh draw of the training's round-off) is
-    allowed to differ from the baseline's value of that seed by the band of the difference
-    of two draws, ``factor`` standard deviations wide: ``rtol = max(floor, exp(factor *
-    sqrt(2) * sigma_log) - 1)``.
+    For every run key without the seed (case, model, preset, integrator, gradient mode) and
+    value column: ``sigma_log`` = sample std over the seeds of ``ln(value)`` at each step,
+    ``sigma_pooled`` = its root mean square over the steps (a few seeds give a poor estimate
+    per step; pooled over the table's steps it is usable). A re-run of one seed (another
+    machine, other kernels: a fresh draw of the training's round-off) may differ from the
+    baseline's value of that seed by the band of the difference of two draws, ``factor``
+    standard deviations wide: ``rtol = max(floor, exp(factor * sqrt(2) * sigma_pooled) - 1)``.
     """
     if "seed" not in table.columns:
         raise CompareError(f"{name}: no seed column; tolerances come from several seeds")
-    keys = [c for c in table.columns if c not in ("seed", "n_trajectories")
+    keys = [c for c in table.columns if c not in ("seed", "n_trajectories", "step")
             and not pd.api.types.is_float_dtype(table[c])]
     rows = []
     for kv, g in table.groupby(keys, sort=True):
@@ -174,15 +179,21 @@ def derive_tolerances(table: pd.DataFrame, factor: float = TOLERANCE_FACTOR,
             raise CompareError(f"{name}: {dict(zip(keys, kv))} has {n} seed; tolerances need "
                                "at least 2 seeds per run (meshbench run --seeds 3)")
         for c in columns:
-            v = g[c].to_numpy(float)
-            if (v > 0).all() and np.isfinite(v).all():
-                sig = float(np.std(np.log(v), ddof=1))
-                r = max(floor, float(np.expm1(factor * np.sqrt(2.0) * sig)))
-            else:  # zero or non-finite values: no relative spread to measure
-                sig, r = float("nan"), float("inf") if not np.isfinite(v).all() else floor
-            rows.append({**dict(zip(keys, kv)), "column": c, "n_seeds": n,
-                         "seed_mean": float(v.mean()), "sigma_log": sig, "factor": factor,
-                         "floor": floor, "rtol": r})
+            per_step = []
+            for step, gs in g.groupby("step", sort=True):
+                v = gs[c].to_numpy(float)
+                ok = len(v) >= 2 and (v > 0).all() and np.isfinite(v).all()
+                per_step.append((step, float(v.mean()), float(np.std(np.log(v), ddof=1))
+                                 if ok else float("nan"), len(v)))
+            sig = np.array([p[2] for p in per_step])
+            pooled = float(np.sqrt(np.mean(sig[np.isfinite(sig)] ** 2))) \
+                if np.isfinite(sig).any() else float("nan")
+            r = max(floor, float(np.expm1(factor * np.sqrt(2.0) * pooled))) \
+                if np.isfinite(pooled) else float("inf")
+            for step, mean, s_step, k in per_step:
+                rows.append({**dict(zip(keys, kv)), "step": step, "column": c, "n_seeds": k,
+                             "seed_mean": mean, "sigma_log": s_step, "sigma_pooled": pooled,
+                             "factor": factor, "floor": floor, "rtol": r})
     return pd.DataFrame(rows)
 
 

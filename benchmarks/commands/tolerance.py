@@ -42,7 +42,12 @@ def run(args):
     if not src.exists():
         raise FileNotFoundError(f"{src}: no results; create them with `meshbench run --suite "
                                 f"{suite.name} --seeds 3 --results {args.results}`")
-    tol = C.derive_tolerances(C.read_csv(src), factor, floor, name=str(src))
+    try:
+        tol = C.derive_tolerances(C.read_csv(src), factor, floor, name=str(src))
+    except C.CompareError as e:
+        raise C.CompareError(str(e).replace(
+            "(meshbench run --seeds 3)", f"(create them with `meshbench run --suite "
+            f"{suite.name} --seeds 3 --results {args.results}`)")) from None
     out = src.parent / "tolerance.csv"
     write_csv(out, tol, "tolerance")
     with pd.option_context("display.width", 160, "display.max_rows", 80):
