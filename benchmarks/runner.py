@@ -59,9 +59,10 @@ CSV_HEADERS = {
     "tolerance": (
         "tolerance.csv: relative tolerances of `meshbench run --compare-with` / `meshbench "
         "compare --tolerance`, from the spread of this suite's seeds (meshbench tolerance).",
-        "rtol = max(floor, exp(factor * sqrt(2) * sigma_log) - 1), sigma_log = sample std over "
-        "the n_seeds seeds of ln(value) of `column` for the row's run key and step; "
-        "seed_mean is their mean (m). See docs/SUITE.md."),
+        "rtol = max(floor, exp(factor * sqrt(2) * sigma_pooled) - 1); sigma_log = sample std "
+        "over the n_seeds seeds of ln(`column`) at the row's step, seed_mean their mean (m); "
+        "sigma_pooled = root mean square of sigma_log over the steps of the run key. See "
+        "docs/SUITE.md."),
     "runs": (
         "runs.csv: one row per training run (train_wall_time_s sums every session of the run; "
         "peak_rss_mb is the peak resident memory of the run's own process (VmHWM); "

@@ -2,9 +2,9 @@
 suite from the spread of its seeds.
 
 Reads ``DIR/S/rmse_at_step.csv`` (written by ``meshbench run --suite S --seeds K``, K >= 2;
-3 recommended) and writes ``DIR/S/tolerance.csv``: for every run key without the seed, step
-and value column (rmse_mean, rmse_std), ``rtol = max(floor, exp(factor * sqrt(2) *
-sigma_log) - 1)`` with ``sigma_log`` the sample std over seeds of the log of the value.
+3 recommended) and writes ``DIR/S/tolerance.csv``: for every run key without the seed and every step,
+``rtol = max(floor, exp(factor * sqrt(2) * sigma_pooled) - 1)`` with ``sigma_pooled`` the
+root mean square over the steps of the sample std over seeds of ln(rmse_mean).
 ``meshbench run --compare-with DIR`` and ``meshbench compare --tolerance`` then use it.
 See docs/SUITE.md, "Reproducibility and tolerances"."""
 
