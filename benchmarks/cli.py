@@ -1,17 +1,20 @@
 """The ``meshbench`` command. Each subcommand lives in ``benchmarks/commands/NAME.py`` and
 exposes ``register(subparsers)``; add a module name to ``COMMANDS`` to add a subcommand.
-Heavy imports (torch) happen inside the subcommand, so data commands work without them."""
+Heavy imports (torch) happen inside the subcommand, so data commands work without them; not
+even numpy is imported before ``main`` has pinned the kernel settings (``procs.REPRO_ENV``)."""
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import shlex
+import signal
 import sys
-
-from benchmarks.registry import RegistryError
+import threading
+from pathlib import Path
 
 COMMANDS = ["generate", "simulate", "export", "crosscheck", "compare", "train", "rollout",
-            "bench", "run"]
+            "bench", "run", "tolerance"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -25,23 +28,60 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _interrupt_message(args, argv, e: BaseException) -> str:
+    """What an interruption kept and the command that resumes it, per subcommand."""
+    words = list(sys.argv[1:] if argv is None else argv)
+    again = "meshbench " + " ".join(shlex.quote(w) for w in words)
+    if args.command == "train":
+        out = Path(args.out)
+        kept = (f"{out / 'last.pt'} keeps the last finished epoch" if (out / "last.pt").exists()
+                else "no epoch had finished, nothing was kept")
+        if not (out / "last.pt").exists():
+            return f"{kept}; start again with `{again}`"
+        resume = again if "--resume" in words else again + " --resume"
+        return f"{kept}; continue exactly with `{resume}`"
+    if args.command == "generate":
+        detail = f"{e}; " if str(e) else ""
+        return f"{detail}finished trajectories are kept; resume with `{again}`"
+    if args.command == "run":
+        detail = f"{e}; " if str(e) else "finished runs are kept; "
+        return f"{detail}resume with `{again}`"
+    return f"nothing partial was written; run `{again}` again"
+
+
 def main(argv=None) -> int:
+    from benchmarks import procs
+
+    procs.apply_repro_env()  # before numpy / torch load their kernels (see procs.REPRO_ENV)
     from benchmarks import plugins
+    from benchmarks.procs import LockBusy
+    from benchmarks.registry import RegistryError
     from groundtruth.implicit import ConvergenceError
     from groundtruth.store import StoreError
 
     args = build_parser().parse_args(argv)
+    # SIGTERM stops like Ctrl-C (workers stopped, partial work kept), not mid-write
+    old_term = None
+    if threading.current_thread() is threading.main_thread():
+        old_term = signal.signal(signal.SIGTERM, _sigterm)
     try:
         plugins.load_all(args.plugin)
         return int(args.func(args) or 0)
     except (ValueError, RegistryError, StoreError, ConvergenceError, FileNotFoundError,
-            FloatingPointError) as e:
+            FloatingPointError, LockBusy) as e:
         print(f"meshbench {args.command}: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"meshbench {args.command}: interrupted; finished work is kept, run it again "
-              "to resume", file=sys.stderr)
+    except KeyboardInterrupt as e:
+        print(f"meshbench {args.command}: interrupted; {_interrupt_message(args, argv, e)}",
+              file=sys.stderr)
         return 130
+    finally:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+
+
+def _sigterm(signum, frame):
+    raise KeyboardInterrupt()
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
 Rows are matched on their *key* columns; every other numeric column is a *value* compared
 with ``|new - old| <= atol + rtol * |old|`` (NaN equals NaN). Columns of provenance that
 legitimately differ between machines and runs (wall times, peak memory, git SHA, library
-versions, timestamps, device, threads) are ignored by default.
+versions, timestamps, device, threads, CPU and kernel settings) are ignored by default.
 
 Keys default to the columns that are not floating point (ids, seeds, trajectory and step
 indices); pass ``keys`` to choose them. Exit codes of the command: 0 within tolerance,
@@ -20,7 +20,8 @@ import numpy as np
 import pandas as pd
 
 DEFAULT_IGNORE = re.compile(
-    r"(wall|peak_mem|_time_s$|git_sha|timestamp|created|device|threads|hostname|platform|"
+    r"(wall|peak_mem|peak_rss|_time_s$|git_sha|timestamp|created|device|threads|hostname|"
+    r"platform|^cpu_|^kernel_env$|^machine$|"
     r"version|^python$|^numpy$|^scipy$|^torch|^pandas$|^meshio$|^scikit.fem$)")
 
 
@@ -55,10 +56,22 @@ def read_csv(path) -> pd.DataFrame:
 
 def compare(old: pd.DataFrame, new: pd.DataFrame, rtol: float = 1e-6, atol: float = 0.0,
             keys=None, ignore=(), default_ignore: bool = True,
-            names=("baseline", "new")) -> CompareResult:
-    """Match rows on key columns and report values that moved beyond tolerance."""
+            names=("baseline", "new"), tolerances: pd.DataFrame | None = None,
+            subset: bool = False) -> CompareResult:
+    """Match rows on key columns and report values that moved beyond tolerance.
+
+    ``tolerances`` (a ``tolerance.csv``, see ``derive_tolerances``): a relative tolerance per
+    row and value column, matched on the file's key columns; then only the value columns it
+    covers are compared (``rtol`` applies to rows it does not cover). ``subset``: rows of
+    the baseline missing from ``new`` are not an error (a one-seed re-run against a
+    multi-seed baseline, or ``--only``); rows of ``new`` missing from the baseline still are.
+    """
     if rtol < 0 or atol < 0 or not np.isfinite(rtol) or not np.isfinite(atol):
         raise CompareError(f"rtol and atol must be finite and >= 0, got rtol={rtol}, atol={atol}")
+    if tolerances is not None:
+        tol_cols = set(tolerances["column"])
+        ignore = tuple(ignore) + tuple(c for c in old.columns if c not in tol_cols
+                                       and pd.api.types.is_float_dtype(old[c]))
     ignored = [c for c in old.columns if c in set(ignore)
                or (default_ignore and DEFAULT_IGNORE.search(c) and c not in (keys or ()))]
     missing_new = [c for c in old.columns if c not in new.columns and c not in ignored]
@@ -83,25 +96,105 @@ def compare(old: pd.DataFrame, new: pd.DataFrame, rtol: float = 1e-6, atol: floa
     o, n = (df[keys + values].astype({k: str for k in keys}) for df in (old, new))
     merged = o.merge(n, on=keys, how="outer", suffixes=("_old", "_new"), indicator=True)
     only = merged[merged["_merge"] != "both"]
+    if subset:
+        only = only[only["_merge"] == "right_only"]
     if not only.empty:
         side = only["_merge"].map({"left_only": f"only in {names[0]}",
                                    "right_only": f"only in {names[1]}"})
         rows = [f"{s}: {r}" for s, r in zip(side, only[keys].head(5).to_dict("records"))]
         raise CompareError(f"{len(only)} rows are present in one file only: " + "; ".join(rows))
+    merged = merged[merged["_merge"] == "both"].reset_index(drop=True)
+    if merged.empty:
+        raise CompareError(f"{names[0]} and {names[1]} have no row in common (keys {keys})")
     moved = []
     for c in values:
         a, b = merged[f"{c}_old"], merged[f"{c}_new"]
+        r = _row_rtol(merged, c, tolerances, rtol, names[0])
         if pd.api.types.is_numeric_dtype(a) and pd.api.types.is_numeric_dtype(b):
             a, b = a.to_numpy(float), b.to_numpy(float)
-            close = np.isclose(b, a, rtol=rtol, atol=atol, equal_nan=True)
+            close = (np.abs(b - a) <= atol + r * np.abs(a)) | (np.isnan(a) & np.isnan(b)) \
+                | (a == b)
         else:
             close = (a.astype(str) == b.astype(str)).to_numpy()
         for i in np.flatnonzero(~close):
             row = {k: merged[k].iloc[i] for k in keys}
             old_v, new_v = merged[f"{c}_old"].iloc[i], merged[f"{c}_new"].iloc[i]
             rel = _rel(old_v, new_v)
-            moved.append({**row, "column": c, "old": old_v, "new": new_v, "rel_change": rel})
+            moved.append({**row, "column": c, "old": old_v, "new": new_v, "rel_change": rel,
+                          "rtol": r[i]})
     return CompareResult(keys, values, ignored, len(merged), pd.DataFrame(moved))
+
+
+def _row_rtol(merged: pd.DataFrame, column: str, tolerances, rtol: float, name) -> np.ndarray:
+    """The relative tolerance of every merged row for ``column``."""
+    out = np.full(len(merged), float(rtol))
+    if tolerances is None:
+        return out
+    tk = [c for c in tolerances.columns if c not in TOLERANCE_INFO]
+    missing = [k for k in tk if k not in merged.columns]
+    if missing:
+        raise CompareError(f"tolerance file: key columns {missing} are not key columns of "
+                           f"{name}")
+    t = tolerances[tolerances["column"] == column][tk + ["rtol"]].astype({k: str for k in tk})
+    if t.empty:
+        return out
+    m = merged[tk].merge(t, on=tk, how="left")
+    return np.where(m["rtol"].notna(), m["rtol"].to_numpy(float), out)
+
+
+#: Columns of a ``tolerance.csv`` that are not row keys.
+TOLERANCE_INFO = ("column", "rtol", "n_seeds", "seed_mean", "sigma_log", "sigma_pooled",
+                  "factor", "floor")
+
+#: How ``derive_tolerances`` turns the spread over seeds into a tolerance (docs/SUITE.md).
+TOLERANCE_FACTOR = 3.0
+TOLERANCE_FLOOR = 0.01
+#: The gated column: the paper's number. rmse_std (the spread over test trajectories) is
+#: not gated: between two legitimate draws of MeshGraphNet on the rod it moved by up to 83 %
+#: while two seeds disagreed by at most 17 % (docs/SUITE.md), too noisy to gate on a few seeds.
+TOLERANCE_COLUMNS = ("rmse_mean",)
+
+
+def derive_tolerances(table: pd.DataFrame, factor: float = TOLERANCE_FACTOR,
+                      floor: float = TOLERANCE_FLOOR, columns=TOLERANCE_COLUMNS,
+                      name: str = "rmse_at_step.csv") -> pd.DataFrame:
+    """Per-row relative tolerances from the spread of a multi-seed results table.
+
+    For every run key without the seed (case, model, preset, integrator, gradient mode) and
+    value column: ``sigma_log`` = sample std over the seeds of ``ln(value)`` at each step,
+    ``sigma_pooled`` = its root mean square over the steps (a few seeds give a poor estimate
+    per step; pooled over the table's steps it is usable). A re-run of one seed (another
+    machine, other kernels: a fresh draw of the training's round-off) may differ from the
+    baseline's value of that seed by the band of the difference of two draws, ``factor``
+    standard deviations wide: ``rtol = max(floor, exp(factor * sqrt(2) * sigma_pooled) - 1)``.
+    """
+    if "seed" not in table.columns:
+        raise CompareError(f"{name}: no seed column; tolerances come from several seeds")
+    keys = [c for c in table.columns if c not in ("seed", "n_trajectories", "step")
+            and not pd.api.types.is_float_dtype(table[c])]
+    rows = []
+    for kv, g in table.groupby(keys, sort=True):
+        n = g["seed"].nunique()
+        if n < 2:
+            raise CompareError(f"{name}: {dict(zip(keys, kv))} has {n} seed; tolerances need "
+                               "at least 2 seeds per run (meshbench run --seeds 3)")
+        for c in columns:
+            per_step = []
+            for step, gs in g.groupby("step", sort=True):
+                v = gs[c].to_numpy(float)
+                ok = len(v) >= 2 and (v > 0).all() and np.isfinite(v).all()
+                per_step.append((step, float(v.mean()), float(np.std(np.log(v), ddof=1))
+                                 if ok else float("nan"), len(v)))
+            sig = np.array([p[2] for p in per_step])
+            pooled = float(np.sqrt(np.mean(sig[np.isfinite(sig)] ** 2))) \
+                if np.isfinite(sig).any() else float("nan")
+            r = max(floor, float(np.expm1(factor * np.sqrt(2.0) * pooled))) \
+                if np.isfinite(pooled) else float("inf")
+            for step, mean, s_step, k in per_step:
+                rows.append({**dict(zip(keys, kv)), "step": step, "column": c, "n_seeds": k,
+                             "seed_mean": mean, "sigma_log": s_step, "sigma_pooled": pooled,
+                             "factor": factor, "floor": floor, "rtol": r})
+    return pd.DataFrame(rows)
 
 
 def _rel(a, b):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime
+import multiprocessing
 import os
 import shutil
 import sys
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from benchmarks import plugins, procs
 from groundtruth import store
 from groundtruth.cases import SPLITS
 
@@ -27,9 +29,15 @@ class GenerateReport:
     n_trajectories: int
 
 
+def _init_worker(parent_pid: int, plugin_files: tuple) -> None:
+    from benchmarks import plugins
+
+    procs.worker_init(parent_pid)
+    plugins.load_all(plugin_files)
+
+
 def _simulate_one(case, youngs: float, out: str) -> str:
     """Worker: one trajectory into a partial file (atomic), so an interruption loses nothing."""
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
     res = case.simulate(youngs)
     store.save_npz(Path(out), {"pos": res["pos"], "vel": res["vel"], "t": res["t"],
                                "youngs": np.array(youngs)})
@@ -46,19 +54,51 @@ def _load_partial(path: Path, youngs: float):
     return None
 
 
+class GenerateInterrupted(KeyboardInterrupt):
+    """Ctrl-C (or SIGTERM) during ``generate``; ``kept`` finished trajectories are cached."""
+
+    def __init__(self, case_id: str, kept: int, total: int, partial: Path):
+        super().__init__(f"{case_id}: {kept} of {total} trajectories are kept in {partial}")
+        self.case_id, self.kept, self.total, self.partial = case_id, kept, total, partial
+
+
+def _current(case_dir: Path, h: str) -> bool:
+    """``store.is_current``, but an unreadable ``meta.json`` is only "not current": it is
+    written last, so regenerating repairs it."""
+    try:
+        return store.is_current(case_dir, h)
+    except store.StoreError:
+        return False
+
+
 def generate(case, root=None, workers: int | None = None, force: bool = False,
-             progress: bool = True) -> GenerateReport:
+             progress: bool = True, on_wait=None) -> GenerateReport:
     """Write ``ROOT/CASE/{train,test}.npz`` and ``meta.json``; reuse them if up to date.
 
-    Trajectories run in ``workers`` processes (default: all cores). Each finished trajectory
-    is cached under ``.partial/HASH/`` so an interrupted run resumes; ``meta.json`` is written
-    last and removed first, so a set without it is never taken as complete.
+    Holds ``ROOT/.CASE.lock`` meanwhile: a second ``generate`` of the same case (another
+    ``meshbench run`` on the same data) waits for the first (``on_wait(pid)`` is told once)
+    and then reuses its files.
     """
     root = store.data_dir(root)
     case_dir = root / case.id
+    if not force and _current(case_dir, case.hash()):
+        return GenerateReport(case.id, case_dir, True, 0.0, 0)
+    with procs.DirLock(root, f".{case.id}.lock").acquire(wait=True, on_wait=on_wait):
+        return _generate(case, root, workers, force, progress)
+
+
+def _generate(case, root: Path, workers: int | None, force: bool,
+              progress: bool) -> GenerateReport:
+    """Trajectories run in ``workers`` processes (default: all cores; spawned, with the
+    pinned kernel settings of ``procs.REPRO_ENV``, which decide the last bits of the solver's
+    results; ``meshbench`` pins them in its own process too, so ``workers=1`` runs in-process
+    with the same kernels). Each finished trajectory is cached under ``.partial/HASH/`` so an interrupted
+    run resumes; ``meta.json`` is written last and removed first, so a set without it is never
+    taken as complete. Ctrl-C stops the workers at once (``GenerateInterrupted``)."""
+    case_dir = root / case.id
     h = case.hash()
     t0 = time.perf_counter()
-    if not force and store.is_current(case_dir, h):
+    if not force and _current(case_dir, h):
         return GenerateReport(case.id, case_dir, True, time.perf_counter() - t0, 0)
     workers = max(1, int(workers or os.cpu_count() or 1))
     partial = case_dir / ".partial" / h[:16]
@@ -83,7 +123,12 @@ def generate(case, root=None, workers: int | None = None, force: bool = False,
             results[(s, i)] = _load_partial(partial / f"{s}_{i:04d}.npz", y)
             bar.update(1)
     elif todo:
-        with ProcessPoolExecutor(max_workers=min(workers, len(todo))) as pool:
+        procs.apply_repro_env()
+        pool = ProcessPoolExecutor(max_workers=min(workers, len(todo)),
+                                   mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_init_worker,
+                                   initargs=(os.getpid(), tuple(plugins.loaded_files())))
+        try:
             futs = {pool.submit(_simulate_one, case, y, str(partial / f"{s}_{i:04d}.npz")):
                     (s, i, y) for s, i, y in todo}
             for fut in as_completed(futs):
@@ -91,6 +136,16 @@ def generate(case, root=None, workers: int | None = None, force: bool = False,
                 fut.result()
                 results[(s, i)] = _load_partial(partial / f"{s}_{i:04d}.npz", y)
                 bar.update(1)
+        except KeyboardInterrupt:
+            procs.stop_pool(pool)
+            bar.close()
+            kept = sum(_load_partial(partial / f"{s}_{i:04d}.npz", y) is not None
+                       for s, i, y in jobs)
+            raise GenerateInterrupted(case.id, kept, len(jobs), partial) from None
+        except BaseException:
+            procs.stop_pool(pool)
+            raise
+        pool.shutdown(wait=True)
     bar.close()
 
     meta_splits = {}

@@ -22,19 +22,18 @@ from __future__ import annotations
 
 import datetime
 import json
-import multiprocessing
 import os
 import platform
 import shutil
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from benchmarks import metrics as M
+from benchmarks import procs
 from benchmarks.registry import get_case
 from benchmarks.suites import NO_GRAD_MODE, NO_INTEGRATOR, RunSpec, Suite
 from groundtruth import store
@@ -57,9 +56,18 @@ CSV_HEADERS = {
         "per-trajectory RMSE at `step` (sqrt of the mean over all nodes of the squared "
         "Euclidean position error); increase_vs_meshodenet_pct: 100 (mean / MeshODENet's mean "
         "- 1) for the same case, integrator-free keys and step."),
+    "tolerance": (
+        "tolerance.csv: relative tolerances of `meshbench run --compare-with` / `meshbench "
+        "compare --tolerance`, from the spread of this suite's seeds (meshbench tolerance).",
+        "rtol = max(floor, exp(factor * sqrt(2) * sigma_pooled) - 1); sigma_log = sample std "
+        "over the n_seeds seeds of ln(`column`) at the row's step, seed_mean their mean (m); "
+        "sigma_pooled = root mean square of sigma_log over the steps of the run key. See "
+        "docs/SUITE.md."),
     "runs": (
         "runs.csv: one row per training run (train_wall_time_s sums every session of the run; "
-        "peak_rss_mb is the run process's peak resident memory).",),
+        "peak_rss_mb is the peak resident memory of the run's own process (VmHWM); "
+        "cpu_capability and kernel_env: the SIMD code paths torch, MKL, oneDNN and OpenBLAS "
+        "were pinned to, see docs/SUITE.md).",),
 }
 
 
@@ -85,7 +93,11 @@ def _integrator_ids(config: dict) -> tuple[str, str]:
 def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
                 plugin_files: tuple, progress: bool, device: str = "auto") -> dict:
     """Train (or resume, or reuse) ``spec`` in ``run_dir``, roll it out on the test split and
-    score it. Returns the run's record (also written to ``run_dir/record.json``)."""
+    score it. Returns the run's record (also written to ``run_dir/record.json``).
+
+    Holds ``run_dir/.lock`` (``procs.DirLock``) meanwhile; when another live process holds
+    it (a second ``meshbench run`` on the same runs directory), waits for it and then reuses
+    what it wrote. The kernel releases the lock of a process that died."""
     import torch
 
     from benchmarks import plugins
@@ -93,45 +105,16 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
     plugins.load_all(plugin_files)
     torch.set_num_threads(threads)
     run_dir = Path(run_dir)
-    with _RunLock(run_dir):
+    lock = procs.DirLock(run_dir)
+    lock.acquire(wait=True, on_wait=lambda pid: _log(
+        f"{spec.run_id}: process {pid or '?'} is working on this run; waiting for it"))
+    try:
         return _execute(spec, run_dir, data_dir, progress, device)
-
-
-class _RunLock:
-    """``RUN_DIR/.lock`` holding the owner's pid, so that two suites sharing a runs directory
-    never train the same run at once; a lock left by a dead process is taken over."""
-
-    def __init__(self, run_dir: Path):
-        self.path = Path(run_dir) / ".lock"
-
-    def __enter__(self):
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        for _ in range(2):
-            try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-            except FileExistsError:
-                try:
-                    pid = int(self.path.read_text().strip() or 0)
-                    os.kill(pid, 0)
-                except (ValueError, ProcessLookupError, FileNotFoundError):
-                    self.path.unlink(missing_ok=True)  # stale
-                    continue
-                except PermissionError:
-                    pass
-                raise RuntimeError(f"{self.path.parent} is in use by process {pid} (another "
-                                   "meshbench run?); wait for it or use another --runs-dir") from None
-            with os.fdopen(fd, "w") as f:
-                f.write(str(os.getpid()))
-            return self
-        raise RuntimeError(f"could not lock {self.path}")
-
-    def __exit__(self, *exc):
-        self.path.unlink(missing_ok=True)
+    finally:
+        lock.release()
 
 
 def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str) -> dict:
-    import resource
-
     import torch
 
     from benchmarks.runs import resolve_run, rollout_arrays, train_run
@@ -145,13 +128,25 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
         if rec.get("config") == config and (run_dir / METRICS_FILE).exists():
             rec["reused"] = True
             return rec
+    # every input is checked before the first epoch: a corrupt test split fails now
+    true = store.load_split(get_case(spec.case), "test", data_dir)
     resume = False
     if (run_dir / "config.json").exists():
-        old = json.loads((run_dir / "config.json").read_text())
+        why = "configuration changed since the stored run"
+        try:
+            old = json.loads((run_dir / "config.json").read_text())
+        except (OSError, json.JSONDecodeError):
+            old, why = None, "config.json is unreadable"
         if old == config and (run_dir / "last.pt").exists():
-            resume = True
-        else:
-            _log(f"{spec.run_id}: configuration changed since the stored run; retraining")
+            from meshodenet.train import CheckpointError, load_checkpoint
+
+            try:
+                load_checkpoint(run_dir / "last.pt")
+                resume = True
+            except CheckpointError as e:
+                why = f"{e}"
+        if not resume:
+            _log(f"{spec.run_id}: {why}; retraining")
             for p in run_dir.iterdir():
                 if p.name != ".lock":
                     shutil.rmtree(p) if p.is_dir() else p.unlink()
@@ -170,7 +165,6 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
                         progress=progress, evaluate=False,
                         on_epoch_end=None if progress else log_epoch)
     sessions = json.loads((run_dir / "sessions.json").read_text())
-    true = store.load_split(get_case(spec.case), "test", data_dir)
     pred, m = rollout_arrays(run_dir, "test", data_dir, "best", device, arrays=true)
     store.save_npz(run_dir / PRED_FILE, pred)
     integ, grad = _integrator_ids(config)
@@ -179,7 +173,7 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
     df = per_run_metrics(pred["pos"], true["pos"], true["t"], ids)
     text = df.to_csv(index=False, float_format="%.9g", lineterminator="\n")
     store.atomic_write(run_dir / METRICS_FILE, lambda f: f.write(text), mode="w")
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak_mb = procs.peak_rss_mb()
     tc, mc = config["train"], config["model_config"]
     rec = {
         **ids, "config": config, "reused": False,
@@ -193,12 +187,25 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
         "run_wall_time_s": round(time.time() - t0, 2), "resumed": resume,
         "peak_rss_mb": round(peak_mb, 1), "device": sessions[-1]["device"],
         "threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
-        "machine": platform.machine(), "git_sha": store.git_sha(),
+        "machine": platform.machine(), "cpu_model": _cpu_model(),
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "kernel_env": " ".join(f"{k}={os.environ[k]}" for k in procs.REPRO_ENV
+                               if k in os.environ) or "none", "git_sha": store.git_sha(),
         "versions": store.library_versions(),
         "timestamp": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
     store.save_json(rec_path, rec)
     return rec
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
 
 
 def _n_params(run_dir: Path) -> int:
@@ -244,39 +251,69 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
     t0 = time.time()
     _log(f"suite {suite.name!r}: {len(runs)} run(s): {', '.join(r.run_id for r in runs)}")
     for case_id in dict.fromkeys(r.case for r in runs):
-        rep = generate(get_case(case_id), data_dir, progress=progress)
+        rep = generate(get_case(case_id), data_dir, progress=progress, on_wait=lambda pid, c=case_id: _log(
+            f"data {c}: process {pid or '?'} is generating it; waiting for it"))
         _log(f"data {case_id}: " + ("up to date" if rep.reused else
                                     f"generated in {rep.wall_time_s:.0f} s"))
 
     records: dict = {}
     failures: dict = {}
-    ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=min(jobs, len(runs)), mp_context=ctx,
-                             max_tasks_per_child=1) as pool:
-        futs = {pool.submit(execute_run, r, str(runs_dir / r.run_id),
-                            None if data_dir is None else str(data_dir), threads,
-                            tuple(str(p) for p in plugin_files), progress and jobs == 1,
-                            device): r for r in runs}
-        for i, fut in enumerate(as_completed(futs), 1):
-            r = futs[fut]
-            try:
-                rec = fut.result()
-            except (ValueError, FloatingPointError, RuntimeError) as e:
-                failures[r.run_id] = f"{type(e).__name__}: {e}"
-                _log(f"[{i}/{len(runs)}] {r.run_id}: FAILED: {e}")
-                continue
-            records[r.run_id] = rec
+    procs.apply_repro_env()  # inherited by the spawned workers (see procs.REPRO_ENV)
+    by_id = {r.run_id: r for r in runs}
+    tasks = {r.run_id: (execute_run, (r, str(runs_dir / r.run_id),
+                                      None if data_dir is None else str(data_dir), threads,
+                                      tuple(str(p) for p in plugin_files),
+                                      progress and jobs == 1, device)) for r in runs}
+    done = []
+
+    def on_result(run_id, kind, value):
+        done.append(run_id)
+        i = len(done)
+        if kind == "ok":
+            records[run_id] = rec = value
             how = "reused" if rec.get("reused") else f"trained in {rec['train_wall_time_s']:.0f} s"
-            _log(f"[{i}/{len(runs)}] {r.run_id}: {how}; test RMSE {rec['test_rmse_m']:.4g} m "
+            _log(f"[{i}/{len(runs)}] {run_id}: {how}; test RMSE {rec['test_rmse_m']:.4g} m "
                  f"(no motion {rec['test_no_motion_rmse_m']:.4g} m)")
+            return
+        if kind == "died":
+            msg = (f"its process died (exit code {value}: killed, or out of memory); "
+                   "its finished epochs are kept")
+        elif kind == "interrupted":
+            msg = "its process was interrupted"
+        else:
+            name, text, expected = value
+            if not expected:  # a bug, not a user error: say so loudly
+                _log(f"{run_id}: unexpected {name}: {text}")
+            msg = f"{name}: {text}"
+        failures[run_id] = msg
+        _log(f"[{i}/{len(runs)}] {by_id[run_id].run_id}: FAILED: {msg}")
+
+    try:
+        procs.run_tasks(tasks, min(jobs, len(runs)), on_result)
+    except KeyboardInterrupt:
+        raise SuiteInterrupted(suite.name, sorted(records), runs_dir) from None
     if failures:
-        raise RuntimeError(f"{len(failures)} run(s) of suite {suite.name!r} failed (finished "
-                           "runs are kept; rerun to resume): "
-                           + "; ".join(f"{k}: {v}" for k, v in failures.items()))
+        raise SuiteError(f"{len(failures)} run(s) of suite {suite.name!r} failed (finished "
+                         "runs are kept; fix the cause and rerun the same command to resume): "
+                         + "; ".join(f"{k}: {v}" for k, v in failures.items()))
     ordered = [records[r.run_id] for r in runs]
-    paths = write_results(out, ordered, runs_dir, suite, figures=figures, data_dir=data_dir)
+    with procs.DirLock(out.parent, f".{suite.name}.lock").acquire(wait=True):
+        paths = write_results(out, ordered, runs_dir, suite, figures=figures, data_dir=data_dir)
     _log(f"suite {suite.name!r} done in {time.time() - t0:.0f} s; results in {out}")
     return {"results": out, "records": ordered, "paths": paths}
+
+
+class SuiteError(ValueError):
+    """A suite could not finish (runs failed, a worker died); finished runs are kept."""
+
+
+class SuiteInterrupted(KeyboardInterrupt):
+    """Ctrl-C (or SIGTERM) during ``run_suite``: the workers were stopped."""
+
+    def __init__(self, suite: str, finished: list, runs_dir: Path):
+        super().__init__(f"suite {suite!r}: {len(finished)} finished run(s) kept in {runs_dir}; "
+                         "interrupted runs keep their last finished epoch (last.pt)")
+        self.suite, self.finished, self.runs_dir = suite, finished, runs_dir
 
 
 def runs_table(records: list) -> pd.DataFrame:

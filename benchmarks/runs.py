@@ -140,11 +140,26 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
     case, spec, arrays, mesh, config = r["case"], r["spec"], r["arrays"], r["mesh"], r["config"]
     train_cfg, model_cfg, tr_idx, val_idx = r["train_cfg"], r["model_cfg"], r["tr_idx"], r["val_idx"]
     cfg_path = out / CONFIG_FILE
+    test_file = store.data_dir(data_dir) / case.id / "test.npz"
+    if evaluate and test_file.exists():  # every input is checked before the first epoch
+        store.load_split(case, "test", data_dir)
     if resume:
+        from meshodenet.train import CheckpointError, load_checkpoint
+
         if not (out / "last.pt").exists():
             raise FileNotFoundError(f"--resume: {out / 'last.pt'} does not exist; run without "
                                     "--resume to start this run")
-        old = json.loads(cfg_path.read_text())
+        try:
+            load_checkpoint(out / "last.pt")
+        except CheckpointError as e:
+            raise CheckpointError(f"--resume: {e}; this run cannot continue: start it again "
+                                  f"with `rm -r {out}` and the same command without --resume"
+                                  ) from None
+        try:
+            old = json.loads(cfg_path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"--resume: {cfg_path} is unreadable ({e}); start the run again "
+                             f"with `rm -r {out}` and the same command without --resume") from None
         diffs = [d for d in _diff(old, config) if not d.startswith(("train.epochs:",
                                                                      "overrides:"))]
         if diffs:
@@ -166,20 +181,32 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
     sessions = json.loads(sessions_path.read_text()) if sessions_path.exists() else []
     session = _session_info(dev, t_start)
     session["resumed"] = resume
+    history = out / "history.csv"
+    before = history.stat().st_mtime_ns if history.exists() else None
     try:
         result = fit(model, train, val, train_cfg, out, resume=resume, progress=progress,
                      on_epoch_end=on_epoch_end)
         session["epochs_run"] = result.epochs_run
     except BaseException as e:
         session["ended_by"] = type(e).__name__
-        raise
-    finally:
+        # a session is recorded only if it trained at least one epoch (history.csv moved):
+        # a failure before the first epoch left nothing behind and is not a session
+        if not (history.exists() and history.stat().st_mtime_ns != before):
+            from meshodenet.train import CheckpointError
+
+            if resume and isinstance(e, CheckpointError):
+                raise CheckpointError(f"--resume: {e}; this run cannot continue: start it "
+                                      f"again with `rm -r {out}` and the same command "
+                                      "without --resume") from None
+            raise
         session["wall_time_s"] = round(time.time() - t_start, 2)
         store.save_json(sessions_path, sessions + [session])
+        raise
+    session["wall_time_s"] = round(time.time() - t_start, 2)
+    store.save_json(sessions_path, sessions + [session])
     summary = {"run": str(out), "best_epoch": result.best_epoch,
                "best_val_rmse_m": result.best_val_rmse,
                "train_wall_time_s": round(result.wall_time_s, 2)}
-    test_file = store.data_dir(data_dir) / case.id / "test.npz"
     if evaluate and test_file.exists() and (out / "best.pt").exists():
         metrics = evaluate_run(out, "test", data_dir, device=device)
         summary.update(test_rmse_m=metrics["rmse_m"],
@@ -198,8 +225,23 @@ def _load_run(run_dir: Path, checkpoint: str, device: str):
                                 "--out DIR creates one)")
     if checkpoint not in ("best", "last"):
         raise ValueError(f"--checkpoint must be 'best' or 'last', got {checkpoint!r}")
-    config = json.loads(cfg_path.read_text())
-    model, ck = load_model(run_dir / f"{checkpoint}.pt", pick_device(device))
+    try:
+        config = json.loads(cfg_path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{cfg_path}: unreadable ({e}); retrain the run (meshbench train "
+                         "--out DIR) or restore the file") from None
+    from meshodenet.train import CheckpointError
+
+    path = run_dir / f"{checkpoint}.pt"
+    try:
+        model, ck = load_model(path, pick_device(device))
+    except CheckpointError as e:
+        raise CheckpointError(f"{e}; retrain the run (meshbench train --out {run_dir} ...) or "
+                              "restore the file") from None
+    except (RuntimeError, KeyError, TypeError, ValueError) as e:
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{path}: not a checkpoint of a registered model ({msg[:120]}); "
+                              f"retrain the run (meshbench train --out {run_dir} ...)") from None
     return config, model, ck
 
 

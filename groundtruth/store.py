@@ -188,8 +188,10 @@ def read_meta(case_dir: Path) -> dict | None:
     try:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as e:
-        raise StoreError(f"{path}: unreadable metadata ({e}); delete it or regenerate with "
-                         f"`{regenerate_hint(Path(case_dir).name)}`") from None
+        root = Path(case_dir).parent
+        raise StoreError(f"{path}: unreadable metadata ({e}); repair it with `"
+                         + regenerate_hint(Path(case_dir).name, None if root == Path("data")
+                                           else root).replace(" --force", "") + "`") from None
 
 
 def is_current(case_dir: Path, case_hash: str, verify: bool = True) -> bool:

@@ -192,11 +192,16 @@ def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: Tra
 def _restore(path: Path, model, opt, sched, gen, keys) -> dict:
     """Load ``last.pt`` into the model, optimizer, scheduler and RNGs; return the run state."""
     ck = load_checkpoint(path, model.device)
-    model.load_state_dict(ck["model"])
-    opt.load_state_dict(ck["optimizer"])
-    sched.load_state_dict(ck["scheduler"])
-    gen.set_state(ck["generator"].cpu())  # RNG states are CPU byte tensors
-    torch.set_rng_state(ck["torch_rng"].cpu())
+    try:
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        sched.load_state_dict(ck["scheduler"])
+        gen.set_state(ck["generator"].cpu())  # RNG states are CPU byte tensors
+        torch.set_rng_state(ck["torch_rng"].cpu())
+    except (RuntimeError, ValueError, KeyError, TypeError, AttributeError) as e:
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{path}: does not fit this run's model or optimizer "
+                              f"({msg[:120]})") from None
     return {k: ck[k] for k in keys}
 
 
@@ -253,11 +258,30 @@ def save_checkpoint(path: Path, obj: dict) -> None:
     _atomic_bytes(Path(path), buf.getvalue())
 
 
+class CheckpointError(ValueError):
+    """A checkpoint file is truncated, corrupt or not one of ours."""
+
+
+CHECKPOINT_KEYS = ("model", "optimizer", "scheduler", "generator", "torch_rng", "epoch",
+                   "best_val_rmse", "best_epoch", "history", "model_info")
+
+
 def load_checkpoint(path: Path, device="cpu") -> dict:
+    """``torch.load`` a checkpoint written by ``fit``; ``CheckpointError`` (one line, naming
+    the file) when it is truncated, corrupt or foreign."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no checkpoint here; train first (meshbench train)")
-    return torch.load(path, map_location=device, weights_only=False)
+    try:
+        ck = torch.load(path, map_location=device, weights_only=False)
+    except Exception as e:  # noqa: BLE001 - torch raises many kinds for a bad file
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt: "
+                              f"{msg[:120]})") from None
+    missing = [k for k in CHECKPOINT_KEYS if k not in ck] if isinstance(ck, dict) else ["all"]
+    if missing:
+        raise CheckpointError(f"{path}: not a meshbench checkpoint (missing {missing})")
+    return ck
 
 
 def write_history(path: Path, rows: list) -> None:

@@ -1,7 +1,11 @@
-"""``meshbench compare BASELINE.csv NEW.csv [--rtol R] [--atol A]``: regression check.
+"""``meshbench compare BASELINE.csv NEW.csv [--rtol R] [--atol A] [--tolerance FILE] [--subset]``:
+regression check.
 
 Exit 0 when every value is within tolerance, 1 on a regression (with a table of the rows that
-moved), 2 on a malformed file (missing columns, duplicate keys, rows present in one file only)."""
+moved), 2 on a malformed file (missing columns, duplicate keys, rows present in one file only).
+``--tolerance results/SUITE/tolerance.csv`` (from ``meshbench tolerance``) gives every row and
+column its own relative tolerance; ``--subset`` compares only the baseline's rows that NEW has
+(e.g. a one-seed re-run against a three-seed baseline)."""
 
 from __future__ import annotations
 
@@ -17,6 +21,11 @@ def register(sub):
                    help="comma-separated key columns (default: the non-float columns)")
     p.add_argument("--ignore", action="append", default=[], metavar="COL",
                    help="also ignore this column (repeatable)")
+    p.add_argument("--tolerance", default=None, metavar="FILE",
+                   help="per-row relative tolerances (tolerance.csv of meshbench tolerance); "
+                        "then only the columns it covers are compared")
+    p.add_argument("--subset", action="store_true",
+                   help="baseline rows missing from NEW are not an error")
     p.add_argument("--no-default-ignore", action="store_true",
                    help="compare provenance columns too (wall time, memory, versions, ...)")
     p.set_defaults(func=run)
@@ -27,23 +36,26 @@ def run(args):
 
     old, new = read_csv(args.baseline), read_csv(args.new)
     keys = [k.strip() for k in args.keys.split(",")] if args.keys else None
+    tol = None if args.tolerance is None else read_csv(args.tolerance)
     res = compare(old, new, args.rtol, args.atol, keys, args.ignore,
-                  not args.no_default_ignore, names=(args.baseline, args.new))
-    return report(res, args.rtol, args.atol)
+                  not args.no_default_ignore, names=(args.baseline, args.new), tolerances=tol,
+                  subset=args.subset)
+    return report(res, args.rtol, args.atol, args.tolerance)
 
 
-def report(res, rtol: float, atol: float) -> int:
+def report(res, rtol: float, atol: float, tolerance=None) -> int:
     """Print a comparison's outcome; 0 when within tolerance, 1 on a regression."""
     import pandas as pd
 
     print(f"compared {res.n_rows} rows on keys {res.keys}; values {res.values}"
           + (f"; ignored {res.ignored}" if res.ignored else ""))
+    within = (f"the per-row tolerances of {tolerance} (rtol={rtol:g} elsewhere)"
+              if tolerance else f"rtol={rtol:g}") + f", atol={atol:g}"
     if res.ok:
-        print(f"OK: every value within rtol={rtol:g}, atol={atol:g}")
+        print(f"OK: every value within {within}")
         return 0
     with pd.option_context("display.max_rows", 60, "display.width", 160,
                            "display.float_format", "{:.6g}".format):
-        print(f"REGRESSION: {len(res.moved)} values moved beyond rtol={rtol:g}, "
-              f"atol={atol:g}:")
+        print(f"REGRESSION: {len(res.moved)} values moved beyond {within}:")
         print(res.moved.to_string(index=False))
     return 1

@@ -4,12 +4,16 @@ Generates missing data, trains every run of the suite (finished runs whose confi
 unchanged are reused; interrupted ones resume), rolls the best checkpoints out on the test
 split and writes RESULTS/S/{runs,metrics,rmse_at_step}.csv, rmse_at_step.md and figures/.
 With --compare-with DIR, then compares RESULTS/S/rmse_at_step.csv against DIR/S/ (exit 1 on
-a regression). Suites: smoke, quick, paper, integrators (see --list)."""
+a regression) with the per-row tolerances of DIR/S/tolerance.csv (``meshbench tolerance``);
+only the rows this run produced are compared (e.g. seed 0 of a three-seed baseline).
+Suites: smoke, quick, paper, integrators (see --list)."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
+
+TOLERANCE_FILE = "tolerance.csv"
 
 
 def register(sub):
@@ -33,7 +37,9 @@ def register(sub):
     p.add_argument("--compare-with", default=None, metavar="DIR",
                    help="afterwards compare rmse_at_step.csv with DIR/SUITE/rmse_at_step.csv")
     p.add_argument("--rtol", type=float, default=None,
-                   help="relative tolerance of --compare-with (default: the suite's)")
+                   help="one relative tolerance for --compare-with instead of the per-row "
+                        "tolerances of DIR/SUITE/tolerance.csv (without that file: the "
+                        "suite's compare_rtol)")
     p.set_defaults(func=run)
 
 
@@ -68,8 +74,11 @@ def run(args):
     from benchmarks.commands.compare import report
     from benchmarks.compare import compare, read_csv
 
+    tol_file = base.parent / TOLERANCE_FILE
+    use_tol = args.rtol is None and tol_file.exists()
     rtol = suite.compare_rtol if args.rtol is None else args.rtol
     new = res["results"] / "rmse_at_step.csv"
     result = compare(read_csv(base), read_csv(new), rtol=rtol, atol=0.0,
-                     names=(str(base), str(new)))
-    return report(result, rtol, 0.0)
+                     names=(str(base), str(new)),
+                     tolerances=read_csv(tol_file) if use_tol else None, subset=True)
+    return report(result, rtol, 0.0, str(tol_file) if use_tol else None)

@@ -10,6 +10,7 @@ import numpy as np
 from tqdm import tqdm
 
 from benchmarks.registry import get_case
+from groundtruth.implicit import ConvergenceError
 
 
 def register(sub):
@@ -37,16 +38,23 @@ def run(args):
     if args.t_end is not None and not (np.isfinite(args.t_end) and args.t_end > 0):
         raise ValueError(f"--t-end must be a positive number of seconds, got {args.t_end!r}")
     t0 = time.perf_counter()
-    if args.static:
-        q = case.solve_static(y)
-        t, pos = np.zeros(1), q[None, None]
-        vel = np.zeros_like(pos)
-    else:
-        t_end = case.t_end if args.t_end is None else args.t_end
-        with tqdm(total=t_end, desc=f"simulate {case.id}", unit="s", disable=args.no_progress,
-                  file=sys.stderr, bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} s") as bar:
-            res = case.simulate(y, t_end, progress=lambda t: bar.update(t - bar.n))
-        t, pos, vel = res["t"], res["pos"][None], res["vel"][None]
+    try:
+        if args.static:
+            q = case.solve_static(y)
+            t, pos = np.zeros(1), q[None, None]
+            vel = np.zeros_like(pos)
+        else:
+            t_end = case.t_end if args.t_end is None else args.t_end
+            with tqdm(total=t_end, desc=f"simulate {case.id}", unit="s",
+                      disable=args.no_progress, file=sys.stderr,
+                      bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} s") as bar:
+                res = case.simulate(y, t_end, progress=lambda t: bar.update(t - bar.n))
+            t, pos, vel = res["t"], res["pos"][None], res["vel"][None]
+    except (ConvergenceError, np.linalg.LinAlgError, FloatingPointError) as e:
+        lo, hi = case.youngs_train
+        raise ConvergenceError(f"--youngs {y:g} Pa: the solver failed ({e}); {case.id} is "
+                               f"built for moduli around {lo:g}..{hi:g} Pa (its training "
+                               "range): choose a modulus nearer to it") from None
     store.save_npz(out, store.trajectory_arrays(case, t, pos, vel, [y], "single"))
     kind = "static equilibrium" if args.static else f"{len(t)} frames to t = {t[-1]:g} s"
     print(f"{case.id}: wrote {kind} at Y = {y:.4g} Pa to {out} in {time.perf_counter() - t0:.1f} s")

@@ -38,8 +38,19 @@ def run(args):
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1, got {args.threads}")
     torch.set_num_threads(args.threads)
-    summary = train_run(args.case, args.model, args.preset, args.out, resume=args.resume,
-                        data_dir=args.data_dir, overrides=args.overrides, epochs=args.epochs,
-                        device=args.device, progress=not args.no_progress)
+    from benchmarks.procs import DirLock, LockBusy
+
+    try:  # the lock a suite's worker holds on its run directory
+        lock = DirLock(args.out).acquire()
+    except LockBusy as e:
+        raise LockBusy(f"{e} (a meshbench run or train); wait for it to finish or choose "
+                       "another --out") from None
+    try:
+        summary = train_run(args.case, args.model, args.preset, args.out, resume=args.resume,
+                            data_dir=args.data_dir, overrides=args.overrides,
+                            epochs=args.epochs, device=args.device,
+                            progress=not args.no_progress)
+    finally:
+        lock.release()
     print(json.dumps(summary, indent=2))
     return 0
