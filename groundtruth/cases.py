@@ -56,6 +56,27 @@ def _check_positive(obj, *names):
                              f"got {v!r}")
 
 
+def _check_nonneg(obj, *names):
+    for name in names:
+        v = getattr(obj, name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise ValueError(f"{type(obj).__name__}.{name} must be a finite number >= 0, got {v!r}")
+
+
+def _check_ints(obj, **lows):
+    """Each ``name=low``: ``obj.name`` must be an int >= low."""
+    for name, low in lows.items():
+        n = getattr(obj, name)
+        if isinstance(n, bool) or not isinstance(n, int) or n < low:
+            raise ValueError(f"{type(obj).__name__}.{name} must be an int >= {low}, got {n!r}")
+
+
+def _check_choice(obj, name, choices):
+    v = getattr(obj, name)
+    if v not in choices:
+        raise ValueError(f"{type(obj).__name__}.{name} must be one of {tuple(choices)}, got {v!r}")
+
+
 def _check_range(obj, name):
     v = getattr(obj, name)
     try:
@@ -99,9 +120,9 @@ class CaseBase:
                              f"of save_dt ({self.save_dt!r})")
         for split in SPLITS:
             _check_range(self, f"youngs_{split}")
-            n = getattr(self, f"n_{split}")
-            if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-                raise ValueError(f"{type(self).__name__}.n_{split} must be an int >= 0, got {n!r}")
+            object.__setattr__(self, f"youngs_{split}",
+                               tuple(float(x) for x in getattr(self, f"youngs_{split}")))
+            _check_ints(self, **{f"n_{split}": 0})
 
     # --- time, sampling, provenance -------------------------------------------------------
     @property
@@ -208,24 +229,17 @@ class RodCase(CaseBase):
     kind = "rod"
 
     def __post_init__(self):
-        if isinstance(self.n_nodes, bool) or not isinstance(self.n_nodes, int) or self.n_nodes < 3:
-            raise ValueError(f"RodCase.n_nodes must be an int >= 3, got {self.n_nodes!r}")
+        _check_ints(self, n_nodes=3)
         _check_positive(self, "length", "r0", "node_radius_ratio", "rho_metal", "gravity")
         if self.mid_radius is not None:
             _check_positive(self, "mid_radius")
-        for name in ("rho_fluid", "viscosity"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"RodCase.{name} must be a finite number >= 0, got {v!r}")
-        if self.lumping not in ("spheres", "line"):
-            raise ValueError(f"RodCase.lumping must be 'spheres' or 'line', got {self.lumping!r}")
+        _check_nonneg(self, "rho_fluid", "viscosity")
+        _check_choice(self, "lumping", ("spheres", "line"))
         bad = [i for i in self.clamped_nodes if not (isinstance(i, int) and 0 <= i < self.n_nodes)]
         if bad:
             raise ValueError(f"RodCase.clamped_nodes must be node indices in [0, {self.n_nodes}), "
                              f"got {self.clamped_nodes!r}")
         object.__setattr__(self, "clamped_nodes", tuple(sorted(set(self.clamped_nodes))))
-        object.__setattr__(self, "youngs_train", tuple(float(x) for x in self.youngs_train))
-        object.__setattr__(self, "youngs_test", tuple(float(x) for x in self.youngs_test))
         self._check_common()
 
     # --- geometry and section ----------------------------------------------------------------
@@ -393,31 +407,20 @@ class PlateCase(CaseBase):
         if self.grading < 1:
             raise ValueError(f"PlateCase.grading must be >= 1 (rows finer at the clamp), "
                              f"got {self.grading!r}")
-        if self.pattern not in PATTERNS:
-            raise ValueError(f"PlateCase.pattern must be one of {PATTERNS}, got {self.pattern!r}")
-        if self.newton_predictor not in PREDICTORS:
-            raise ValueError(f"PlateCase.newton_predictor must be one of {PREDICTORS}, "
-                             f"got {self.newton_predictor!r}")
-        if self.spring_weights not in ("area", "uniform"):
-            raise ValueError(f"PlateCase.spring_weights must be 'area' or 'uniform', "
-                             f"got {self.spring_weights!r}")
-        v = self.damping_rate
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-            raise ValueError(f"PlateCase.damping_rate must be a finite number >= 0 (1/s), "
-                             f"got {v!r}")
-        for name, low in (("n_length", 1), ("n_width", 1), ("n_clamp_rows", 2)):
-            n = getattr(self, name)
-            if isinstance(n, bool) or not isinstance(n, int) or n < low:
-                why = " (the hinge model has no rotational dofs: the clamp must hold the slope)" \
-                    if name == "n_clamp_rows" else ""
-                raise ValueError(f"PlateCase.{name} must be an int >= {low}{why}, got {n!r}")
+        _check_choice(self, "pattern", PATTERNS)
+        _check_choice(self, "newton_predictor", PREDICTORS)
+        _check_choice(self, "spring_weights", ("area", "uniform"))
+        _check_nonneg(self, "damping_rate")
+        _check_ints(self, n_length=1, n_width=1)
+        n = self.n_clamp_rows
+        if isinstance(n, bool) or not isinstance(n, int) or n < 2:
+            raise ValueError(f"PlateCase.n_clamp_rows must be an int >= 2 (the hinge model has no "
+                             f"rotational dofs: the clamp must hold the slope), got {n!r}")
         x1 = graded_rows(self.length, self.n_length, self.grading, self.grading_layer)[1]
         if self.clamp_gap >= 2 * x1:
             raise ValueError(f"PlateCase.clamp_gap ({self.clamp_gap!r} m) must be smaller than "
                              f"twice the first free row spacing ({x1:.4g} m): the last clamped "
                              "row sits at x = clamp_gap / 2; pass a smaller clamp_gap")
-        object.__setattr__(self, "youngs_train", tuple(float(x) for x in self.youngs_train))
-        object.__setattr__(self, "youngs_test", tuple(float(x) for x in self.youngs_test))
         self._check_common()
 
     # --- geometry --------------------------------------------------------------------------
@@ -561,22 +564,12 @@ class InPlanePlateCase(CaseBase):
                         "shear_factor")
         if not (isinstance(self.poisson, (int, float)) and 0 <= self.poisson < 0.5):
             raise ValueError(f"InPlanePlateCase.poisson must be in [0, 0.5), got {self.poisson!r}")
-        v = self.damping_rate
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-            raise ValueError(f"InPlanePlateCase.damping_rate must be a finite number >= 0 (1/s), "
-                             f"got {v!r}")
-        for name, low in (("n_rows", 3), ("n_long", 1)):
-            n = getattr(self, name)
-            if isinstance(n, bool) or not isinstance(n, int) or n < low:
-                raise ValueError(f"InPlanePlateCase.{name} must be an int >= {low}, got {n!r}")
+        _check_nonneg(self, "damping_rate")
+        _check_ints(self, n_rows=3, n_long=1)
         if self.n_rows % 2 == 0:
             raise ValueError(f"InPlanePlateCase.n_rows must be odd (a node row on the centre "
                              f"line carries the tip node), got {self.n_rows!r}")
-        if self.newton_predictor not in PREDICTORS:
-            raise ValueError(f"InPlanePlateCase.newton_predictor must be one of {PREDICTORS}, "
-                             f"got {self.newton_predictor!r}")
-        object.__setattr__(self, "youngs_train", tuple(float(x) for x in self.youngs_train))
-        object.__setattr__(self, "youngs_test", tuple(float(x) for x in self.youngs_test))
+        _check_choice(self, "newton_predictor", PREDICTORS)
         self._check_common()
 
     # --- geometry --------------------------------------------------------------------------
