@@ -71,13 +71,50 @@ CSV_HEADERS = {
 }
 
 
-def _header(kind: str) -> str:
-    return "".join(f"# {line}\n" for line in CSV_HEADERS[kind])
+#: The sidecar next to the CSVs of a results directory: what each file and column means.
+README_FILE = "README.md"
+README_INTRO = (
+    "The CSV files here are plain (no comment lines): `pandas.read_csv(path)` and spreadsheets "
+    "load them as they are. This file describes them; it is rewritten by `meshbench run` and "
+    "`meshbench tolerance`. RMSE is defined once, in `benchmarks/metrics.py`: for one "
+    "trajectory at saved frame k, the root of the mean over all nodes of the squared Euclidean "
+    "position error, in metres (clamped nodes included). See docs/SUITE.md.")
+
+
+def write_readme(directory: Path) -> Path:
+    """Write ``directory/README.md`` describing every known CSV present in ``directory``."""
+    directory = Path(directory)
+    lines = [f"# {directory.name}: results files", "", README_INTRO, ""]
+    for kind, text in CSV_HEADERS.items():
+        if (directory / f"{kind}.csv").exists():
+            lines += [f"## `{kind}.csv`", ""]
+            for k, para in enumerate(text):
+                para = para.split(": ", 1)[-1] if k == 0 else para
+                lines += [para[:1].upper() + para[1:], ""]
+    path = directory / README_FILE
+    body = "\n".join(lines).rstrip() + "\n"
+    store.atomic_write(path, lambda f: f.write(body), mode="w")
+    return path
 
 
 def write_csv(path: Path, df: pd.DataFrame, kind: str) -> None:
-    text = _header(kind) + df.to_csv(index=False, float_format="%.6g", lineterminator="\n")
+    """A plain CSV (no comment lines); its description goes to the directory's README.md
+    (``write_readme``)."""
+    text = df.to_csv(index=False, float_format="%.6g", lineterminator="\n")
     store.atomic_write(Path(path), lambda f: f.write(text), mode="w")
+    write_readme(Path(path).parent)
+
+
+def strip_comments(path: Path) -> list[str]:
+    """Remove the ``#`` comment lines of an old-style CSV in place (atomically); returns them
+    (for the sidecar). The data lines are kept byte for byte."""
+    path = Path(path)
+    lines = path.read_text().splitlines(keepends=True)
+    comments = [ln[1:].strip() for ln in lines if ln.startswith("#")]
+    if comments:
+        data = "".join(ln for ln in lines if not ln.startswith("#"))
+        store.atomic_write(path, lambda f: f.write(data), mode="w")
+    return comments
 
 
 def _log(msg: str) -> None:

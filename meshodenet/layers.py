@@ -1,10 +1,11 @@
-"""Building blocks shared by MeshODENet and MeshGraphNet: MLPs, the message-passing layer and
-the encode-process-decode network."""
+"""Building blocks shared by MeshODENet and MeshGraphNet: MLPs, the message-passing layer (a
+PyTorch Geometric ``MessagePassing``) and the encode-process-decode network."""
 
 from __future__ import annotations
 
 import torch
 from torch import nn
+from torch_geometric.nn import MessagePassing
 
 ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "tanh": nn.Tanh}
 
@@ -33,18 +34,23 @@ def mlp(d_in: int, d_hidden: int, d_out: int, n_hidden: int, activation: str = "
 
 def scatter_sum(src: torch.Tensor, index: torch.Tensor, size: int) -> torch.Tensor:
     """``out[k] = sum of src[e] over e with index[e] == k``; ``out`` has exactly ``size`` rows,
-    also when the last nodes receive no edge."""
+    also when the last nodes receive no edge. (The hand-written sum the layers used before
+    they were expressed with PyG; kept for ``meshbench bench --impl handwritten``.)"""
     return src.new_zeros(size, src.shape[-1]).index_add_(0, index, src)
 
 
-class InteractionLayer(nn.Module):
-    r"""One message-passing layer with residual edge and node updates, sum aggregation:
+class InteractionLayer(MessagePassing):
+    r"""One message-passing layer with residual edge and node updates, sum aggregation,
+    expressed with PyTorch Geometric's ``MessagePassing``:
 
     .. math::
         e'_{ij} = e_{ij} + \phi_e([e_{ij}, h_i, h_j]), \qquad
         h'_j = h_j + \phi_v\big([h_j, \textstyle\sum_{i \to j} e'_{ij}]\big)
 
-    for the directed edge ``i -> j`` (sender ``i``, receiver ``j``).
+    for the directed edge ``i -> j`` (sender ``i``, receiver ``j``). In PyG's naming (flow
+    ``source_to_target``, ``edge_index = [senders; receivers]``) the sender is ``_j`` and the
+    receiver ``_i``: ``edge_update`` computes ``phi_e([e, h_j, h_i])``, ``propagate`` sums the
+    messages at the receivers.
 
     Shapes:
         - h: ``(M, d)`` node latents, e: ``(D, d)`` edge latents
@@ -52,24 +58,45 @@ class InteractionLayer(nn.Module):
         - returns ``(h', e')`` with the shapes of ``(h, e)``
     """
 
+    #: the nodes sum the residual-updated edge latent (``False``: the edge MLP's output)
+    aggregate_updated_edges = True
+    #: how ``forward`` passes messages: ``"pyg"`` (``propagate``, the default) or
+    #: ``"handwritten"`` (gather + ``index_add_``, the code before PyG; same numbers up to
+    #: float round-off; ``meshbench bench engine --impl handwritten``). The fast engine
+    #: (``meshodenet.fast``) reads the MLPs' weights and never calls ``forward``.
+    message_passing = "pyg"
+
     def __init__(self, d: int, n_hidden: int, activation: str = "relu",
                  layer_norm: bool = False):
-        super().__init__()
+        super().__init__(aggr="sum", flow="source_to_target")
         self.edge_mlp = mlp(3 * d, d, d, n_hidden, activation, layer_norm)
         self.node_mlp = mlp(2 * d, d, d, n_hidden, activation, layer_norm)
 
-    def message(self, h, e, senders, receivers):
-        return e + self.edge_mlp(torch.cat([e, h[senders], h[receivers]], dim=-1))
+    # --- PyG hooks --------------------------------------------------------------------
+    def edge_update(self, e: torch.Tensor, h_i: torch.Tensor, h_j: torch.Tensor) -> torch.Tensor:
+        """``phi_e([e_ij, h_sender, h_receiver])`` per directed edge ``(D, d)``."""
+        return self.edge_mlp(torch.cat([e, h_j, h_i], dim=-1))
 
-    def aggregate(self, messages, receivers, n_nodes: int):
-        return scatter_sum(messages, receivers, n_nodes)
+    def message(self, m: torch.Tensor) -> torch.Tensor:
+        return m
 
-    def update(self, h, aggregated):
+    def node_update(self, h: torch.Tensor, aggregated: torch.Tensor) -> torch.Tensor:
+        """``h + phi_v([h, aggregated])``."""
         return h + self.node_mlp(torch.cat([h, aggregated], dim=-1))
 
     def forward(self, h, e, senders, receivers):
-        e = self.message(h, e, senders, receivers)
-        return self.update(h, self.aggregate(e, receivers, h.shape[0])), e
+        n = h.shape[0]
+        if self.message_passing == "handwritten":
+            m = self.edge_mlp(torch.cat([e, h[senders], h[receivers]], dim=-1))
+            e_new = e + m
+            agg = scatter_sum(e_new if self.aggregate_updated_edges else m, receivers, n)
+            return self.node_update(h, agg), e_new
+        edge_index = torch.stack([senders, receivers])
+        m = self.edge_updater(edge_index, e=e, h=h, size=(n, n))
+        e_new = e + m
+        agg = self.propagate(edge_index, m=e_new if self.aggregate_updated_edges else m,
+                             size=(n, n))
+        return self.node_update(h, agg), e_new
 
 
 class EncodeProcessDecode(nn.Module):

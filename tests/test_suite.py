@@ -91,7 +91,7 @@ def test_compare_with_detects_a_regression(smoke, capsys):
     root, args = smoke
     base = root / "baseline"
     (base / "smoke").mkdir(parents=True)
-    t = pd.read_csv(root / "results/smoke/rmse_at_step.csv", comment="#")
+    t = pd.read_csv(root / "results/smoke/rmse_at_step.csv")
     t.loc[3, "rmse_mean"] *= 0.5  # the baseline was twice as good there
     t.to_csv(base / "smoke/rmse_at_step.csv", index=False)
     again = [a if a != str(root / "results") else str(root / "again2") for a in args]
