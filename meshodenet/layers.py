@@ -3,6 +3,8 @@ PyTorch Geometric ``MessagePassing``) and the encode-process-decode network."""
 
 from __future__ import annotations
 
+import os
+
 import torch
 from torch import nn
 from torch_geometric.nn import MessagePassing
@@ -64,7 +66,10 @@ class InteractionLayer(MessagePassing):
     #: ``"handwritten"`` (gather + ``index_add_``, the code before PyG; same numbers up to
     #: float round-off; ``meshbench bench engine --impl handwritten``). The fast engine
     #: (``meshodenet.fast``) reads the MLPs' weights and never calls ``forward``.
-    message_passing = "pyg"
+    #: ``MESHODENET_MESSAGE_PASSING=handwritten`` makes the hand-written one the default (with
+    #: ``MESHODENET_ENGINE=reference`` it reproduces the reference engine's training from
+    #: before the PyG change bit for bit: PyG's gradients differ by float round-off).
+    message_passing = os.environ.get("MESHODENET_MESSAGE_PASSING", "pyg")
 
     def __init__(self, d: int, n_hidden: int, activation: str = "relu",
                  layer_norm: bool = False):
