@@ -85,23 +85,23 @@ def run_tasks_dask(tasks: dict, on_result, scheduler: str | None = None,
     try:
         futures = {client.submit(remote_task, fn, args, key=f"meshbench-{key}", pure=False): key
                    for key, (fn, args) in tasks.items()}
-        try:
-            for fut in as_completed(futures):
-                key = futures[fut]
-                try:
-                    kind, value, host = fut.result()
-                except Exception as e:  # noqa: BLE001 - KilledWorker, lost scheduler, ...
-                    on_result(key, "died", f"{type(e).__name__}: {e}")
-                    continue
-                if kind == "ok" and isinstance(value, dict):
-                    value = {**value, "host": host}
-                on_result(key, kind, value)
-        except BaseException:
-            client.cancel(list(futures))
-            raise
+        for fut in as_completed(futures):
+            key = futures[fut]
+            try:
+                kind, value, host = fut.result()
+            except Exception as e:  # noqa: BLE001 - KilledWorker, lost scheduler, ...
+                on_result(key, "died", f"{type(e).__name__}: {e}")
+                continue
+            if kind == "ok" and isinstance(value, dict):
+                value = {**value, "host": host}
+            on_result(key, kind, value)
     finally:
-        client.close()
+        # closing the client releases its futures: the scheduler forgets the queued runs
+        # (a running one finishes on its worker); a LocalCluster stops its workers
+        with contextlib.suppress(Exception):
+            client.close(timeout=10)
         if cluster is not None:
-            cluster.close()
+            with contextlib.suppress(Exception):
+                cluster.close(timeout=10)
 
 
