@@ -30,8 +30,8 @@ these shapes (and their backward shapes are not separately timed).
 Model weights are random (seeded) and the trajectories synthetic when the case's data is not
 generated: the cost of a fixed-step rollout does not depend on the values. All timings use
 ``--threads`` torch threads (default 1). ``--impl`` lists the implementations to compare
-(``reference``: the module-by-module layers, message passing with PyG's ``MessagePassing``;
-``handwritten``: the same with the hand-written gather + ``index_add_`` message passing;
+(``reference``: the module-by-module layers, their sum at the receivers PyG's ``scatter``;
+``handwritten``: the same with the hand-written ``index_add_`` sum;
 ``fast``; ``current`` = whatever the model does by default): they are measured
 in one process, interleaved round by round, so that their ratios are not skewed by the load of
 a shared machine.

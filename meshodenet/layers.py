@@ -1,5 +1,5 @@
-"""Building blocks shared by MeshODENet and MeshGraphNet: MLPs, the message-passing layer (a
-PyTorch Geometric ``MessagePassing``) and the encode-process-decode network."""
+"""Building blocks shared by MeshODENet and MeshGraphNet: MLPs, the message-passing layer (its
+aggregation PyTorch Geometric's ``scatter``) and the encode-process-decode network."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ import os
 
 import torch
 from torch import nn
-from torch_geometric.nn import MessagePassing
 
 ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "tanh": nn.Tanh}
 
@@ -41,18 +40,16 @@ def scatter_sum(src: torch.Tensor, index: torch.Tensor, size: int) -> torch.Tens
     return src.new_zeros(size, src.shape[-1]).index_add_(0, index, src)
 
 
-class InteractionLayer(MessagePassing):
-    r"""One message-passing layer with residual edge and node updates, sum aggregation,
-    expressed with PyTorch Geometric's ``MessagePassing``:
+class InteractionLayer(nn.Module):
+    r"""One message-passing layer with residual edge and node updates, sum aggregation:
 
     .. math::
         e'_{ij} = e_{ij} + \phi_e([e_{ij}, h_i, h_j]), \qquad
         h'_j = h_j + \phi_v\big([h_j, \textstyle\sum_{i \to j} e'_{ij}]\big)
 
-    for the directed edge ``i -> j`` (sender ``i``, receiver ``j``). In PyG's naming (flow
-    ``source_to_target``, ``edge_index = [senders; receivers]``) the sender is ``_j`` and the
-    receiver ``_i``: ``edge_update`` computes ``phi_e([e, h_j, h_i])``, ``propagate`` sums the
-    messages at the receivers.
+    for the directed edge ``i -> j`` (sender ``i``, receiver ``j``). The sum over the edges
+    into each receiver is PyTorch Geometric's ``torch_geometric.utils.scatter`` (``reduce=
+    "sum"``, ``dim_size`` = the number of nodes, so nodes without incoming edges get zeros).
 
     Shapes:
         - h: ``(M, d)`` node latents, e: ``(D, d)`` edge latents
@@ -62,28 +59,18 @@ class InteractionLayer(MessagePassing):
 
     #: the nodes sum the residual-updated edge latent (``False``: the edge MLP's output)
     aggregate_updated_edges = True
-    #: how ``forward`` passes messages: ``"pyg"`` (``propagate``, the default) or
-    #: ``"handwritten"`` (gather + ``index_add_``, the code before PyG; same numbers up to
-    #: float round-off; ``meshbench bench engine --impl handwritten``). The fast engine
-    #: (``meshodenet.fast``) reads the MLPs' weights and never calls ``forward``.
-    #: ``MESHODENET_MESSAGE_PASSING=handwritten`` makes the hand-written one the default (with
-    #: ``MESHODENET_ENGINE=reference`` it reproduces the reference engine's training from
-    #: before the PyG change bit for bit: PyG's gradients differ by float round-off).
+    #: the sum at the receivers: ``"pyg"`` (``torch_geometric.utils.scatter``, the default) or
+    #: ``"handwritten"`` (``index_add_``, the code before; ``meshbench bench engine --impl
+    #: handwritten``; ``MESHODENET_MESSAGE_PASSING=handwritten`` makes it the default). The fast
+    #: engine (``meshodenet.fast``) reads the MLPs' weights and never calls ``forward``, so
+    #: torch_geometric (about 1.5-4 s to import here) is imported only when this runs.
     message_passing = os.environ.get("MESHODENET_MESSAGE_PASSING", "pyg")
 
     def __init__(self, d: int, n_hidden: int, activation: str = "relu",
                  layer_norm: bool = False):
-        super().__init__(aggr="sum", flow="source_to_target")
+        super().__init__()
         self.edge_mlp = mlp(3 * d, d, d, n_hidden, activation, layer_norm)
         self.node_mlp = mlp(2 * d, d, d, n_hidden, activation, layer_norm)
-
-    # --- PyG hooks --------------------------------------------------------------------
-    def edge_update(self, e: torch.Tensor, h_i: torch.Tensor, h_j: torch.Tensor) -> torch.Tensor:
-        """``phi_e([e_ij, h_sender, h_receiver])`` per directed edge ``(D, d)``."""
-        return self.edge_mlp(torch.cat([e, h_j, h_i], dim=-1))
-
-    def message(self, m: torch.Tensor) -> torch.Tensor:
-        return m
 
     def node_update(self, h: torch.Tensor, aggregated: torch.Tensor) -> torch.Tensor:
         """``h + phi_v([h, aggregated])``."""
@@ -91,16 +78,15 @@ class InteractionLayer(MessagePassing):
 
     def forward(self, h, e, senders, receivers):
         n = h.shape[0]
-        if self.message_passing == "handwritten":
-            m = self.edge_mlp(torch.cat([e, h[senders], h[receivers]], dim=-1))
-            e_new = e + m
-            agg = scatter_sum(e_new if self.aggregate_updated_edges else m, receivers, n)
-            return self.node_update(h, agg), e_new
-        edge_index = torch.stack([senders, receivers])
-        m = self.edge_updater(edge_index, e=e, h=h, size=(n, n))
+        m = self.edge_mlp(torch.cat([e, h[senders], h[receivers]], dim=-1))
         e_new = e + m
-        agg = self.propagate(edge_index, m=e_new if self.aggregate_updated_edges else m,
-                             size=(n, n))
+        src = e_new if self.aggregate_updated_edges else m
+        if self.message_passing == "handwritten":
+            agg = scatter_sum(src, receivers, n)
+        else:
+            from torch_geometric.utils import scatter
+
+            agg = scatter(src, receivers, dim=0, dim_size=n, reduce="sum")
         return self.node_update(h, agg), e_new
 
 

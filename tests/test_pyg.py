@@ -1,6 +1,6 @@
-"""PyTorch Geometric: the reference layers are PyG ``MessagePassing`` modules (same numbers as
-the hand-written gather + index_add_ and as the fast path), and a model written in PyG,
-registered from a plugin file, runs through a suite."""
+"""PyTorch Geometric: the reference layers sum with PyG's ``scatter`` (the same numbers as the
+hand-written index_add_), and a model written in PyG, registered from a plugin file, runs
+through a suite."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ import torch
 pytest.importorskip("torch_geometric")
 
 from torch_geometric.data import Batch  # noqa: E402
-from torch_geometric.nn import MessagePassing  # noqa: E402
 
 from meshodenet.data import Mesh, Trajectories  # noqa: E402
 from meshodenet.layers import InteractionLayer  # noqa: E402
@@ -27,14 +26,14 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_pyg_layer_equals_the_handwritten_one(cls):
     torch.manual_seed(0)
     layer = cls(8, 1).double()
-    assert isinstance(layer, MessagePassing)
+    assert layer.message_passing == "pyg"
     h, e = torch.randn(6, 8, dtype=torch.float64), torch.randn(10, 8, dtype=torch.float64)
     snd = torch.tensor([0, 1, 2, 3, 4, 1, 2, 3, 4, 5])
     rcv = torch.tensor([1, 2, 3, 4, 5, 0, 1, 2, 3, 4])
     h1, e1 = layer(h, e, snd, rcv)
     layer.message_passing = "handwritten"
     h2, e2 = layer(h, e, snd, rcv)
-    assert torch.allclose(h1, h2, rtol=1e-12, atol=1e-12) and torch.equal(e1, e2)
+    assert torch.equal(h1, h2) and torch.equal(e1, e2)  # measured bit-identical
     # by hand: the edge update sees [e, h_sender, h_receiver], the nodes sum at receivers
     m = layer.edge_mlp(torch.cat([e, h[snd], h[rcv]], -1))
     agg = torch.zeros_like(h).index_add_(0, rcv, e + m if cls is InteractionLayer else m)

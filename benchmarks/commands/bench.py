@@ -37,8 +37,8 @@ def register(sub):
                    help="comma-separated, of " + ", ".join(enginebench.REGIMES))
     e.add_argument("--impl", default="current",
                    help="comma-separated implementations measured interleaved in one process: "
-                   "current (the model's default), reference (PyG message passing), handwritten "
-                   "(the reference with the hand-written message passing), fast")
+                   "current (the model's default), reference (PyG scatter), handwritten "
+                   "(the reference with the hand-written index_add_), fast")
     e.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     e.add_argument("--rounds", type=int, default=5, help="interleaved rounds per regime")
     e.add_argument("--budget", type=float, default=0.3, help="seconds per round and impl")
