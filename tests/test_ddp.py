@@ -26,24 +26,33 @@ ARGS = ["--case", "rod_cantilever", "--model", "mgn", "--preset", "smoke", "--ep
         "--set", "model.noise=0", "--no-progress"]
 
 
-def test_torchrun_two_ranks_match_one_process(tmp_path):
-    data = tmp_path / "data"
-    cli = [sys.executable, "-m", "benchmarks.cli"]
-    r = subprocess.run(cli + ["generate", "rod_cantilever", "--data-dir", str(data),
+CLI = [sys.executable, "-m", "benchmarks.cli"]
+
+
+@pytest.fixture(scope="module")
+def one(tmp_path_factory):
+    """Data and the one-process training."""
+    tmp = tmp_path_factory.mktemp("ddp")
+    data = tmp / "data"
+    r = subprocess.run(CLI + ["generate", "rod_cantilever", "--data-dir", str(data),
                               "--workers", "1", "--no-progress"], env=ENV, capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     args = ARGS + ["--data-dir", str(data)]
-    r = subprocess.run(cli + ["train", *args, "--out", str(tmp_path / "one")], env=ENV,
+    r = subprocess.run(CLI + ["train", *args, "--out", str(tmp / "one")], env=ENV,
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
+    return args, pd.read_csv(tmp / "one" / "history.csv")
+
+
+def test_torchrun_two_ranks_match_one_process(tmp_path, one):
+    args, one = one
     torchrun = Path(sys.executable).parent / "torchrun"
     r = subprocess.run([str(torchrun), "--nproc-per-node", "2", "--standalone", "-m",
                         "benchmarks.cli", "train", *args, "--out", str(tmp_path / "two")],
                        env=ENV, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     assert r.stdout.count('"best_epoch"') == 1  # rank 0 alone reports
-    one = pd.read_csv(tmp_path / "one" / "history.csv")
     two = pd.read_csv(tmp_path / "two" / "history.csv")
     assert len(one) == len(two) == 3
     rel = ((two["train_loss"] - one["train_loss"]).abs() / one["train_loss"]).max()
@@ -53,8 +62,13 @@ def test_torchrun_two_ranks_match_one_process(tmp_path):
     sessions = json.loads((tmp_path / "two" / "sessions.json").read_text())
     assert len(sessions) == 1 and sessions[0]["world_size"] == 2
     assert (tmp_path / "two" / "best.pt").exists() and (tmp_path / "two" / "test_metrics.json").exists()
-    # a rank alone (half the batch) trains differently: the comparison above can fail
-    r = subprocess.run(cli + ["train", *args, "--set", "train.batch_size=4", "--out",
+
+
+@pytest.mark.slow
+def test_half_the_batch_in_one_process_differs(tmp_path, one):
+    """What a rank computes alone trains differently: the comparison above can fail."""
+    args, one = one
+    r = subprocess.run(CLI + ["train", *args, "--set", "train.batch_size=4", "--out",
                               str(tmp_path / "half")], env=ENV, capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
