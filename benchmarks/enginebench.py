@@ -30,7 +30,9 @@ these shapes (and their backward shapes are not separately timed).
 Model weights are random (seeded) and the trajectories synthetic when the case's data is not
 generated: the cost of a fixed-step rollout does not depend on the values. All timings use
 ``--threads`` torch threads (default 1). ``--impl`` lists the implementations to compare
-(``reference``, ``fast``; ``current`` = whatever the model does by default): they are measured
+(``reference``: the module-by-module layers, their sum at the receivers PyG's ``scatter``;
+``handwritten``: the same with the hand-written ``index_add_`` sum;
+``fast``; ``current`` = whatever the model does by default): they are measured
 in one process, interleaved round by round, so that their ratios are not skewed by the load of
 a shared machine.
 """
@@ -58,6 +60,13 @@ def _set_impl(model, impl: str) -> None:
         if not hasattr(model, "engine"):
             raise ValueError(f"--impl {impl}: this version of MeshODENet has only one "
                              "implementation; use --impl current")
+        if impl == "handwritten":  # the reference engine with the layers before PyG
+            from meshodenet.layers import InteractionLayer
+
+            for m in model.modules():
+                if isinstance(m, InteractionLayer):
+                    m.message_passing = "handwritten"
+            impl = "reference"
         model.engine = impl
 
 

@@ -25,6 +25,7 @@ import json
 import os
 import platform
 import shutil
+import socket
 import sys
 import time
 from pathlib import Path
@@ -67,17 +68,55 @@ CSV_HEADERS = {
         "runs.csv: one row per training run (train_wall_time_s sums every session of the run; "
         "peak_rss_mb is the peak resident memory of the run's own process (VmHWM); "
         "cpu_capability and kernel_env: the SIMD code paths torch, MKL, oneDNN and OpenBLAS "
-        "were pinned to, see docs/SUITE.md).",),
+        "were pinned to, see docs/SUITE.md; host: the machine that ran the run, or found it "
+        "finished and reused it).",),
 }
 
 
-def _header(kind: str) -> str:
-    return "".join(f"# {line}\n" for line in CSV_HEADERS[kind])
+#: The sidecar next to the CSVs of a results directory: what each file and column means.
+README_FILE = "README.md"
+README_INTRO = (
+    "The CSV files here are plain (no comment lines): `pandas.read_csv(path)` and spreadsheets "
+    "load them as they are. This file describes them; it is rewritten by `meshbench run` and "
+    "`meshbench tolerance`. RMSE is defined once, in `benchmarks/metrics.py`: for one "
+    "trajectory at saved frame k, the root of the mean over all nodes of the squared Euclidean "
+    "position error, in metres (clamped nodes included). See docs/SUITE.md.")
+
+
+def write_readme(directory: Path) -> Path:
+    """Write ``directory/README.md`` describing every known CSV present in ``directory``."""
+    directory = Path(directory)
+    lines = [f"# {directory.name}: results files", "", README_INTRO, ""]
+    for kind, text in CSV_HEADERS.items():
+        if (directory / f"{kind}.csv").exists():
+            lines += [f"## `{kind}.csv`", ""]
+            for k, para in enumerate(text):
+                para = para.split(": ", 1)[-1] if k == 0 else para
+                lines += [para[:1].upper() + para[1:], ""]
+    path = directory / README_FILE
+    body = "\n".join(lines).rstrip() + "\n"
+    store.atomic_write(path, lambda f: f.write(body), mode="w")
+    return path
 
 
 def write_csv(path: Path, df: pd.DataFrame, kind: str) -> None:
-    text = _header(kind) + df.to_csv(index=False, float_format="%.6g", lineterminator="\n")
+    """A plain CSV (no comment lines); its description goes to the directory's README.md
+    (``write_readme``)."""
+    text = df.to_csv(index=False, float_format="%.6g", lineterminator="\n")
     store.atomic_write(Path(path), lambda f: f.write(text), mode="w")
+    write_readme(Path(path).parent)
+
+
+def strip_comments(path: Path) -> list[str]:
+    """Remove the ``#`` comment lines of an old-style CSV in place (atomically); returns them
+    (for the sidecar). The data lines are kept byte for byte."""
+    path = Path(path)
+    lines = path.read_text().splitlines(keepends=True)
+    comments = [ln[1:].strip() for ln in lines if ln.startswith("#")]
+    if comments:
+        data = "".join(ln for ln in lines if not ln.startswith("#"))
+        store.atomic_write(path, lambda f: f.write(data), mode="w")
+    return comments
 
 
 def _log(msg: str) -> None:
@@ -109,9 +148,11 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
     lock.acquire(wait=True, on_wait=lambda pid: _log(
         f"{spec.run_id}: process {pid or '?'} is working on this run; waiting for it"))
     try:
-        return _execute(spec, run_dir, data_dir, progress, device)
+        rec = _execute(spec, run_dir, data_dir, progress, device)
     finally:
         lock.release()
+    # where it ran (or was found finished): runs.csv only, not record.json, not the config
+    return {**rec, "host": socket.gethostname()}
 
 
 def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str) -> dict:
@@ -232,8 +273,17 @@ def per_run_metrics(pred, true, t, ids: dict) -> pd.DataFrame:
 def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=None,
               seeds: int | None = None, only: str | None = None, jobs: int = 1,
               threads: int = 1, plugin_files=(), progress: bool = True, device: str = "auto",
-              figures: bool = True) -> dict:
-    """Run ``suite`` and write ``results_dir/SUITE/``; returns paths and the records."""
+              figures: bool = True, executor: str = "local", scheduler: str | None = None
+              ) -> dict:
+    """Run ``suite`` and write ``results_dir/SUITE/``; returns paths and the records.
+
+    ``executor``: ``"local"`` (``jobs`` spawned processes on this machine) or ``"dask"``
+    (``benchmarks.cluster``: one dask task per run, on the cluster of ``scheduler``, or on a
+    new ``LocalCluster`` of ``jobs`` worker processes when ``scheduler`` is None)."""
+    if executor not in ("local", "dask"):
+        raise ValueError(f"--executor must be 'local' or 'dask', got {executor!r}")
+    if scheduler is not None and executor != "dask":
+        raise ValueError("--scheduler needs --executor dask")
     from benchmarks.generate import generate
 
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
@@ -260,10 +310,15 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
     failures: dict = {}
     procs.apply_repro_env()  # inherited by the spawned workers (see procs.REPRO_ENV)
     by_id = {r.run_id: r for r in runs}
+    if executor == "dask":  # workers may start elsewhere: absolute paths on the shared FS
+        runs_dir = runs_dir.resolve()
+        data_dir = store.data_dir(data_dir).resolve()
+        plugin_files = tuple(str(Path(p).resolve()) for p in plugin_files)
     tasks = {r.run_id: (execute_run, (r, str(runs_dir / r.run_id),
                                       None if data_dir is None else str(data_dir), threads,
                                       tuple(str(p) for p in plugin_files),
-                                      progress and jobs == 1, device)) for r in runs}
+                                      progress and jobs == 1 and executor == "local", device))
+             for r in runs}
     done = []
 
     def on_result(run_id, kind, value):
@@ -276,7 +331,8 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
                  f"(no motion {rec['test_no_motion_rmse_m']:.4g} m)")
             return
         if kind == "died":
-            msg = (f"its process died (exit code {value}: killed, or out of memory); "
+            why = f"exit code {value}" if isinstance(value, int) else f"{value}"
+            msg = (f"its process died ({why}: killed, or out of memory); "
                    "its finished epochs are kept")
         elif kind == "interrupted":
             msg = "its process was interrupted"
@@ -289,7 +345,12 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
         _log(f"[{i}/{len(runs)}] {by_id[run_id].run_id}: FAILED: {msg}")
 
     try:
-        procs.run_tasks(tasks, min(jobs, len(runs)), on_result)
+        if executor == "dask":
+            from benchmarks.cluster import run_tasks_dask
+
+            run_tasks_dask(tasks, on_result, scheduler, min(jobs, len(runs)))
+        else:
+            procs.run_tasks(tasks, min(jobs, len(runs)), on_result)
     except KeyboardInterrupt:
         raise SuiteInterrupted(suite.name, sorted(records), runs_dir) from None
     if failures:

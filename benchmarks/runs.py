@@ -170,13 +170,18 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
     elif (out / "last.pt").exists():
         raise ValueError(f"{out} already holds a run; pass --resume to continue it or choose "
                          "another --out")
+    from meshodenet.train import broadcast_parameters, distributed_rank
+
+    lead = distributed_rank()[0] == 0  # torchrun: rank 0 writes, every rank trains
     dev = pick_device(device)
-    store.save_json(cfg_path, config)
+    if lead:
+        store.save_json(cfg_path, config)
 
     full = Trajectories.from_arrays(arrays, device=dev)
     train, val = full.subset(torch.as_tensor(tr_idx)), full.subset(torch.as_tensor(val_idx))
     torch.manual_seed(train_cfg.seed)
     model = spec.build(mesh, model_cfg, train).to(dev)
+    broadcast_parameters(model)
     sessions_path = out / "sessions.json"
     sessions = json.loads(sessions_path.read_text()) if sessions_path.exists() else []
     session = _session_info(dev, t_start)
@@ -187,7 +192,11 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
         result = fit(model, train, val, train_cfg, out, resume=resume, progress=progress,
                      on_epoch_end=on_epoch_end)
         session["epochs_run"] = result.epochs_run
+        if not lead:
+            return {"run": str(out), "rank": distributed_rank()[0]}
     except BaseException as e:
+        if not lead:
+            raise
         session["ended_by"] = type(e).__name__
         # a session is recorded only if it trained at least one epoch (history.csv moved):
         # a failure before the first epoch left nothing behind and is not a session
@@ -203,6 +212,8 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
         store.save_json(sessions_path, sessions + [session])
         raise
     session["wall_time_s"] = round(time.time() - t_start, 2)
+    if distributed_rank()[1] > 1:
+        session["world_size"] = distributed_rank()[1]
     store.save_json(sessions_path, sessions + [session])
     summary = {"run": str(out), "best_epoch": result.best_epoch,
                "best_val_rmse_m": result.best_val_rmse,

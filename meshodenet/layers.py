@@ -1,7 +1,9 @@
-"""Building blocks shared by MeshODENet and MeshGraphNet: MLPs, the message-passing layer and
-the encode-process-decode network."""
+"""Building blocks shared by MeshODENet and MeshGraphNet: MLPs, the message-passing layer (its
+aggregation PyTorch Geometric's ``scatter``) and the encode-process-decode network."""
 
 from __future__ import annotations
+
+import os
 
 import torch
 from torch import nn
@@ -33,7 +35,8 @@ def mlp(d_in: int, d_hidden: int, d_out: int, n_hidden: int, activation: str = "
 
 def scatter_sum(src: torch.Tensor, index: torch.Tensor, size: int) -> torch.Tensor:
     """``out[k] = sum of src[e] over e with index[e] == k``; ``out`` has exactly ``size`` rows,
-    also when the last nodes receive no edge."""
+    also when the last nodes receive no edge. (The hand-written sum the layers used before
+    they were expressed with PyG; kept for ``meshbench bench --impl handwritten``.)"""
     return src.new_zeros(size, src.shape[-1]).index_add_(0, index, src)
 
 
@@ -44,7 +47,9 @@ class InteractionLayer(nn.Module):
         e'_{ij} = e_{ij} + \phi_e([e_{ij}, h_i, h_j]), \qquad
         h'_j = h_j + \phi_v\big([h_j, \textstyle\sum_{i \to j} e'_{ij}]\big)
 
-    for the directed edge ``i -> j`` (sender ``i``, receiver ``j``).
+    for the directed edge ``i -> j`` (sender ``i``, receiver ``j``). The sum over the edges
+    into each receiver is PyTorch Geometric's ``torch_geometric.utils.scatter`` (``reduce=
+    "sum"``, ``dim_size`` = the number of nodes, so nodes without incoming edges get zeros).
 
     Shapes:
         - h: ``(M, d)`` node latents, e: ``(D, d)`` edge latents
@@ -52,24 +57,37 @@ class InteractionLayer(nn.Module):
         - returns ``(h', e')`` with the shapes of ``(h, e)``
     """
 
+    #: the nodes sum the residual-updated edge latent (``False``: the edge MLP's output)
+    aggregate_updated_edges = True
+    #: the sum at the receivers: ``"pyg"`` (``torch_geometric.utils.scatter``, the default) or
+    #: ``"handwritten"`` (``index_add_``, the code before; ``meshbench bench engine --impl
+    #: handwritten``; ``MESHODENET_MESSAGE_PASSING=handwritten`` makes it the default). The fast
+    #: engine (``meshodenet.fast``) reads the MLPs' weights and never calls ``forward``, so
+    #: torch_geometric (about 1.5-4 s to import here) is imported only when this runs.
+    message_passing = os.environ.get("MESHODENET_MESSAGE_PASSING", "pyg")
+
     def __init__(self, d: int, n_hidden: int, activation: str = "relu",
                  layer_norm: bool = False):
         super().__init__()
         self.edge_mlp = mlp(3 * d, d, d, n_hidden, activation, layer_norm)
         self.node_mlp = mlp(2 * d, d, d, n_hidden, activation, layer_norm)
 
-    def message(self, h, e, senders, receivers):
-        return e + self.edge_mlp(torch.cat([e, h[senders], h[receivers]], dim=-1))
-
-    def aggregate(self, messages, receivers, n_nodes: int):
-        return scatter_sum(messages, receivers, n_nodes)
-
-    def update(self, h, aggregated):
+    def node_update(self, h: torch.Tensor, aggregated: torch.Tensor) -> torch.Tensor:
+        """``h + phi_v([h, aggregated])``."""
         return h + self.node_mlp(torch.cat([h, aggregated], dim=-1))
 
     def forward(self, h, e, senders, receivers):
-        e = self.message(h, e, senders, receivers)
-        return self.update(h, self.aggregate(e, receivers, h.shape[0])), e
+        n = h.shape[0]
+        m = self.edge_mlp(torch.cat([e, h[senders], h[receivers]], dim=-1))
+        e_new = e + m
+        src = e_new if self.aggregate_updated_edges else m
+        if self.message_passing == "handwritten":
+            agg = scatter_sum(src, receivers, n)
+        else:
+            from torch_geometric.utils import scatter
+
+            agg = scatter(src, receivers, dim=0, dim_size=n, reduce="sum")
+        return self.node_update(h, agg), e_new
 
 
 class EncodeProcessDecode(nn.Module):

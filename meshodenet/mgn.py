@@ -112,9 +112,7 @@ class GraphNetBlock(InteractionLayer):
     Shapes: as ``InteractionLayer``.
     """
 
-    def forward(self, h, e, senders, receivers):
-        m = self.edge_mlp(torch.cat([e, h[senders], h[receivers]], dim=-1))
-        return self.update(h, self.aggregate(m, receivers, h.shape[0])), e + m
+    aggregate_updated_edges = False
 
 
 class MeshGraphNetwork(EncodeProcessDecode):

@@ -97,6 +97,57 @@ def make_optimizer(model: TrajectoryModel, cfg: TrainConfig):
     return opt, sched
 
 
+def distributed_rank() -> tuple[int, int]:
+    """``(rank, world size)`` of this process in an initialised ``torch.distributed`` process
+    group of more than one process (``torchrun``); ``(0, 1)`` otherwise."""
+    dist = torch.distributed
+    if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def _distributed_backward(model, data, idx, step_seed: int, rank: int, world: int, max_norm):
+    """Data-parallel step of one global batch ``idx``: this rank computes the loss of its
+    share ``idx[rank::world]`` weighted by ``len(share) / len(idx)``, so that the sum over
+    ranks is the global batch's mean loss; the gradients and losses are then summed over the
+    ranks (``all_reduce``): every rank holds the gradient one process would have computed on
+    the whole batch (up to the order of the floating-point sums), and takes the same step.
+    Randomness of the loss (training noise) comes from a generator seeded with
+    ``step_seed * world + rank``; ``step_seed`` derives from the state of the trainer's shared
+    generator at the start of the epoch without drawing from it, so the shuffling is the one
+    process's and stays in step on every rank, and resuming stays exact.
+    Returns ``(global loss, gradient norm)``."""
+    dist = torch.distributed
+    mine = idx[rank::world]
+    params = [p for p in model.parameters() if p.requires_grad]
+    local = 0.0
+    if len(mine):
+        lgen = torch.Generator().manual_seed(step_seed * world + rank)
+        loss = model.training_loss(data, mine, lgen) * (len(mine) / len(idx))
+        local = float(loss.detach())
+        if math.isfinite(local):
+            loss.backward()
+    flat = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1)
+                      for p in params] + [torch.tensor([local], dtype=params[0].dtype,
+                                                        device=params[0].device)])
+    dist.all_reduce(flat)
+    k = 0
+    for p in params:
+        p.grad = flat[k:k + p.numel()].view_as(p).clone()
+        k += p.numel()
+    value = float(flat[-1])
+    norm = torch.nn.utils.clip_grad_norm_(params, max_norm) if math.isfinite(value) \
+        else torch.tensor(math.nan)
+    return value, norm
+
+
+def broadcast_parameters(model: TrajectoryModel) -> None:
+    """Rank 0's parameters and buffers to every rank (as ``DistributedDataParallel`` does)."""
+    if distributed_rank()[1] > 1:
+        for t in list(model.parameters()) + list(model.buffers()):
+            torch.distributed.broadcast(t.data, 0)
+
+
 def train_epoch(model: TrajectoryModel, opt, data: Trajectories, cfg: TrainConfig,
                 generator: torch.Generator, max_batches: int | None = None,
                 bar: tqdm | None = None) -> tuple[float, int]:
@@ -106,8 +157,12 @@ def train_epoch(model: TrajectoryModel, opt, data: Trajectories, cfg: TrainConfi
     than applied; an epoch in which every step is skipped raises ``FloatingPointError``.
     """
     model.train()
+    rank, world = distributed_rank()
     n = model.n_training_samples(data)
     order = torch.randperm(n, generator=generator)
+    if world > 1:  # a seed for the ranks' loss noise, without drawing from ``generator``
+        epoch_seed = int(torch.randint(0, 2 ** 40, (1,), generator=torch.Generator().set_state(
+            generator.get_state()))) * 4096
     total, count, skipped, steps = 0.0, 0, 0, 0
     max_norm = cfg.grad_clip if cfg.grad_clip > 0 else math.inf
     for k, s in enumerate(range(0, n, cfg.batch_size)):
@@ -116,11 +171,15 @@ def train_epoch(model: TrajectoryModel, opt, data: Trajectories, cfg: TrainConfi
         steps += 1
         idx = order[s:s + cfg.batch_size]
         opt.zero_grad(set_to_none=True)
-        loss = model.training_loss(data, idx, generator)
-        value = float(loss.detach())
-        if math.isfinite(value):
-            loss.backward()
-            norm = torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm)
+        if world > 1:  # torchrun: this rank's share of the batch, gradients all-reduced
+            value, norm = _distributed_backward(model, data, idx, (epoch_seed + k) % 2 ** 40,
+                                                rank, world, max_norm)
+        else:
+            loss = model.training_loss(data, idx, generator)
+            value = float(loss.detach())
+            if math.isfinite(value):
+                loss.backward()
+                norm = torch.nn.utils.clip_grad_norm_(model.parameters(), max_norm)
         if not math.isfinite(value) or not torch.isfinite(norm):
             skipped += 1
             continue
@@ -164,12 +223,17 @@ def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: Tra
     if resume:
         state = _restore(run_dir / "last.pt", model, opt, sched, gen, list(state))
     start = state["epoch"]
+    lead = distributed_rank()[0] == 0  # with torchrun: only rank 0 validates and writes
+    progress = progress and lead
+    no_val = val if lead else val.subset(torch.zeros(0, dtype=torch.long))
     bar = tqdm(total=cfg.epochs, initial=start, desc=f"train {model.name}", unit="epoch",
                disable=not progress, file=sys.stderr, dynamic_ncols=True)
     try:
         for epoch in range(start, cfg.epochs):
-            row, improved = _epoch(model, opt, sched, gen, train, val, cfg, epoch, state,
-                                   progress)
+            row, improved = _epoch(model, opt, sched, gen, train, val if lead else no_val,
+                                   cfg, epoch, state, progress)
+            if not lead:
+                continue
             ck = {"model": model.state_dict(), "optimizer": opt.state_dict(),
                   "scheduler": sched.state_dict(), "generator": gen.get_state(),
                   "torch_rng": torch.get_rng_state(), **state, "extra": extra_state or {},

@@ -315,10 +315,10 @@ def _race(tmp_path, pl, suite, data, delay: float):
     outs = [p.communicate(timeout=600) for p in ps]
     for p, (_, err) in zip(ps, outs):
         assert p.returncode == 0, err
-    a, b = (pd.read_csv(tmp_path / f"res{k}" / suite / "rmse_at_step.csv", comment="#")
+    a, b = (pd.read_csv(tmp_path / f"res{k}" / suite / "rmse_at_step.csv")
             for k in range(2))
     pd.testing.assert_frame_equal(a, b)
-    m = [pd.read_csv(tmp_path / f"res{k}" / suite / "metrics.csv", comment="#")
+    m = [pd.read_csv(tmp_path / f"res{k}" / suite / "metrics.csv")
          for k in range(2)]
     pd.testing.assert_frame_equal(*m)
     return outs

@@ -70,8 +70,13 @@ def test_smoke_suite_writes_every_result(smoke):
     for name in ("rmse_vs_step", "snapshots", "loss_curves"):
         png = out / "figures" / f"{name}_rod_cantilever.png"
         assert png.stat().st_size > 5000, png
-    # the header documents the RMSE definition
-    assert "sqrt(mean over ALL nodes" in (out / "metrics.csv").read_text().splitlines()[1]
+    # plain CSVs; the sidecar documents every file and the RMSE definition
+    for name in ("runs", "metrics", "rmse_at_step"):
+        assert not (out / f"{name}.csv").read_text().startswith("#")
+        assert pd.read_csv(out / f"{name}.csv").shape[0] > 0
+    readme = (out / "README.md").read_text()
+    assert "sqrt(mean over ALL nodes" in readme and "`runs.csv`" in readme
+    assert "host" in pd.read_csv(out / "runs.csv").columns
 
 
 def test_rerun_reuses_finished_runs_and_compares_clean(smoke, capsys):
@@ -91,7 +96,7 @@ def test_compare_with_detects_a_regression(smoke, capsys):
     root, args = smoke
     base = root / "baseline"
     (base / "smoke").mkdir(parents=True)
-    t = pd.read_csv(root / "results/smoke/rmse_at_step.csv", comment="#")
+    t = pd.read_csv(root / "results/smoke/rmse_at_step.csv")
     t.loc[3, "rmse_mean"] *= 0.5  # the baseline was twice as good there
     t.to_csv(base / "smoke/rmse_at_step.csv", index=False)
     again = [a if a != str(root / "results") else str(root / "again2") for a in args]

@@ -31,6 +31,13 @@ def register(sub):
     p.add_argument("--jobs", type=int, default=1,
                    help="runs trained at once, each in its own process (default 1)")
     p.add_argument("--threads", type=int, default=1, help="torch threads per run (default 1)")
+    p.add_argument("--executor", default="local", choices=("local", "dask"),
+                   help="local: --jobs processes on this machine (default); dask: one task per "
+                        "run on a dask.distributed cluster (docs/CLUSTER.md)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="with --executor dask: the scheduler (tcp://HOST:PORT); without it a "
+                        "LocalCluster of --jobs worker processes. Workers must see the same "
+                        "data and runs directories (shared filesystem)")
     p.add_argument("--device", default="auto", help="auto (CUDA if present), cpu or cuda")
     p.add_argument("--no-figures", action="store_true")
     p.add_argument("--no-progress", action="store_true")
@@ -64,7 +71,8 @@ def run(args):
     res = run_suite(suite, results_dir=args.results, runs_dir=args.runs_dir,
                     data_dir=args.data_dir, seeds=args.seeds, only=args.only, jobs=args.jobs,
                     threads=args.threads, plugin_files=loaded_files(), device=args.device,
-                    progress=not args.no_progress, figures=not args.no_figures)
+                    progress=not args.no_progress, figures=not args.no_figures,
+                    executor=args.executor, scheduler=args.scheduler)
     print((res["results"] / "rmse_at_step.md").read_text())
     if args.compare_with is None:
         return 0

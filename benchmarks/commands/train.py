@@ -27,7 +27,35 @@ def register(sub):
                    help="torch CPU threads (default 1: these graphs are small, and on a shared "
                         "machine a second thread costs more than it gives)")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--ddp", action="store_true",
+                   help="data-parallel over the processes of `torchrun --nproc-per-node K -m "
+                        "benchmarks.cli train ...` (implied when torchrun sets WORLD_SIZE > 1): "
+                        "each batch split over the ranks, gradients all-reduced; gloo on CPU, "
+                        "NCCL on CUDA; rank 0 validates and writes (docs/CLUSTER.md)")
     p.set_defaults(func=run)
+
+
+def _init_distributed(args):
+    """Join torchrun's process group; returns (rank, world, device name)."""
+    import os
+
+    import torch
+    import torch.distributed as dist
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if not args.ddp and world <= 1:
+        return 0, 1, args.device
+    if "RANK" not in os.environ or "MASTER_ADDR" not in os.environ:
+        raise ValueError("--ddp: not started by torchrun (RANK / MASTER_ADDR are not set); "
+                         "use `torchrun --nproc-per-node K -m benchmarks.cli train ...`")
+    device = args.device
+    cuda = device.startswith("cuda") or (device == "auto" and torch.cuda.is_available())
+    if cuda:
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        torch.cuda.set_device(local)
+        device = f"cuda:{local}"
+    dist.init_process_group("nccl" if cuda else "gloo")
+    return dist.get_rank(), dist.get_world_size(), device
 
 
 def run(args):
@@ -40,17 +68,24 @@ def run(args):
     torch.set_num_threads(args.threads)
     from benchmarks.procs import DirLock, LockBusy
 
-    try:  # the lock a suite's worker holds on its run directory
-        lock = DirLock(args.out).acquire()
-    except LockBusy as e:
-        raise LockBusy(f"{e} (a meshbench run or train); wait for it to finish or choose "
-                       "another --out") from None
+    rank, world, device = _init_distributed(args)
+    lock = None
     try:
+        if rank == 0:
+            try:  # the lock a suite's worker holds on its run directory
+                lock = DirLock(args.out).acquire()
+            except LockBusy as e:
+                raise LockBusy(f"{e} (a meshbench run or train); wait for it to finish or "
+                               "choose another --out") from None
         summary = train_run(args.case, args.model, args.preset, args.out, resume=args.resume,
                             data_dir=args.data_dir, overrides=args.overrides,
-                            epochs=args.epochs, device=args.device,
+                            epochs=args.epochs, device=device,
                             progress=not args.no_progress)
     finally:
-        lock.release()
-    print(json.dumps(summary, indent=2))
+        if lock is not None:
+            lock.release()
+        if world > 1:
+            torch.distributed.destroy_process_group()
+    if rank == 0:
+        print(json.dumps(summary, indent=2))
     return 0
