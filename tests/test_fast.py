@@ -5,6 +5,8 @@ registered ``plate_cantilever`` case, for several architectures and integrators.
 
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 
@@ -31,6 +33,9 @@ def pair(arrays, config, seed=0):
     torch.manual_seed(seed)
     ref = MeshODENet(Mesh.from_arrays(arrays), config, data).double()
     ref.engine = "reference"
+    for layer in ref.modules():  # today's summation (index_add_); PyG's scatter: test below
+        if hasattr(layer, "message_passing"):
+            layer.message_passing = "handwritten"
     with torch.no_grad():  # random biases and decoder so that nothing is trivially zero
         g = torch.Generator().manual_seed(seed + 1)
         for pf, pr in zip(fast.parameters(), ref.parameters(), strict=True):
@@ -74,7 +79,7 @@ def check_field(fast, ref, data, n):
         torch.testing.assert_close(x, y, **TOL)
 
 
-def check_training_step(fast, ref, data, n):
+def check_training_step(fast, ref, data, n, tol=TOL):
     samples = torch.arange(n)
     out = {}
     for name, m in (("fast", fast), ("ref", ref)):
@@ -85,11 +90,11 @@ def check_training_step(fast, ref, data, n):
             pos, vel = m.rollout(data.pos[:n, 0], data.vel[:n, 0], data.youngs[:n], data.t)
         out[name] = (loss.detach(), grads(m), pos, vel)
     (la, ga, pa, va), (lb, gb, pb, vb) = out["fast"], out["ref"]
-    torch.testing.assert_close(la, lb, **TOL)
-    torch.testing.assert_close(pa, pb, **TOL)
-    torch.testing.assert_close(va, vb, **TOL)
+    torch.testing.assert_close(la, lb, **tol)
+    torch.testing.assert_close(pa, pb, **tol)
+    torch.testing.assert_close(va, vb, **tol)
     for x, y in zip(ga, gb, strict=True):
-        torch.testing.assert_close(x, y, **TOL)
+        torch.testing.assert_close(x, y, **tol)
 
 
 CONFIGS = [
@@ -242,3 +247,16 @@ def test_bench_engine_cli_json_report_and_compare(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "rod1" in text and "x1.00" in text
     assert main(["bench", "engine", "--graphs", "rod2"]) == 2
+
+
+def test_pyg_scatter_reference_matches_handwritten_to_round_off():
+    """The reference path's sum at the receivers through PyG's ``scatter`` (the default) against
+    ``index_add_``: the two kernels accumulate in different orders, so on the paper-size field
+    over a whole training rollout they agree to float64 round-off (measured: 2.7e-10 relative
+    in 1 of 16384 weight-gradient entries), not bit for bit."""
+    _, ref, data = pair(case_arrays("rod_falling", n=3, frames=4), MeshODENetConfig())
+    pyg = copy.deepcopy(ref)
+    for layer in pyg.modules():
+        if hasattr(layer, "message_passing"):
+            layer.message_passing = "pyg"
+    check_training_step(pyg, ref, data, 3, tol={"rtol": 1e-9, "atol": 1e-12})
