@@ -252,11 +252,11 @@ def test_bench_engine_cli_json_report_and_compare(tmp_path, capsys):
 def test_pyg_scatter_reference_matches_handwritten_to_round_off():
     """The reference path's sum at the receivers through PyG's ``scatter`` (the default) against
     ``index_add_``: the two kernels accumulate in different orders, so on the paper-size field
-    over a whole training rollout they agree to float64 round-off (measured: 2.7e-10 relative
-    in 1 of 16384 weight-gradient entries), not bit for bit."""
+    over a whole training rollout they agree to float64 round-off, not bit for bit (measured on
+    the 3 batched rods: up to 5.2e-10 relative in 8 of 16384 entries of one weight gradient)."""
     _, ref, data = pair(case_arrays("rod_falling", n=3, frames=4), MeshODENetConfig())
     pyg = copy.deepcopy(ref)
     for layer in pyg.modules():
         if hasattr(layer, "message_passing"):
             layer.message_passing = "pyg"
-    check_training_step(pyg, ref, data, 3, tol={"rtol": 1e-9, "atol": 1e-12})
+    check_training_step(pyg, ref, data, 3, tol={"rtol": 2e-9, "atol": 1e-12})
