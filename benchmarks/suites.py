@@ -126,8 +126,8 @@ register_suite(Suite(
     "smoke", "rod_cantilever (6 short trajectories), both models, smoke preset: about a "
     "minute, for the tests", _both("rod_cantilever", "smoke")))
 register_suite(Suite(
-    "quick", "the paper's two cases, MeshODENet and MGN, quick preset: about 17 minutes on a "
-    "2-core CPU with --jobs 2 (README)", _both("rod_falling", "quick") + _both("plate_cantilever", "quick"),
+    "quick", "the paper's two cases, MeshODENet and MGN, quick preset: about 35 minutes "
+    "(data and one seed) on a shared 2-core CPU with --jobs 2 (README)", _both("rod_falling", "quick") + _both("plate_cantilever", "quick"),
     compare_rtol=0.05))
 register_suite(Suite(
     "paper", "the paper's two cases, MeshODENet and MGN, the paper's settings (GPU "
