@@ -131,7 +131,7 @@ register_suite(Suite(
     compare_rtol=0.05))
 register_suite(Suite(
     "paper", "the paper's two cases, MeshODENet and MGN, the paper's settings (GPU "
-    "recommended: about 45 h per MeshODENet run on a 2-core CPU)",
+    "recommended: about 14 h per MeshODENet rod run on one core)",
     _both("rod_falling", "paper") + _both("plate_cantilever", "paper")))
 register_suite(Suite(
     "hanging", "plate_hanging (the paper's text read literally: gravity through the thickness, "

@@ -59,7 +59,8 @@ def meshodenet_presets(preset: str, kind: str) -> tuple[TrainConfig, MeshODENetC
       rollouts; plate: 32 ... 256, then 2 epochs of whole 500-frame rollouts). Plates cap each
       epoch at 8 steps (a random subset of the windows) to fit the time budget. Measured on
       a 2-core CPU: the rod learns (test RMSE 4.2 mm, no motion 62.9 mm, 6 min); the plate
-      does not (1.18 m, no motion 0.81 m, 6.5 min) -- see docs/TRAINING.md.
+      does not: the in-plane plate_cantilever stays at the no-motion error (test RMSE 0.156-0.175 m
+      over 3 seeds, no motion 0.136 m, 13-16 min loaded) -- see README and docs/TRAINING.md.
     - ``smoke``: a tiny model, 2 epochs, for tests.
     """
     check_preset(preset)
