@@ -127,7 +127,8 @@ register_suite(Suite(
     "minute, for the tests", _both("rod_cantilever", "smoke")))
 register_suite(Suite(
     "quick", "the paper's two cases, MeshODENet and MGN, quick preset: about 35 minutes "
-    "(data and one seed) on a shared 2-core CPU with --jobs 2 (README)", _both("rod_falling", "quick") + _both("plate_cantilever", "quick"),
+    "(data and one seed) on a shared 2-core CPU with --jobs 2 (README)",
+    _both("rod_falling", "quick") + _both("plate_cantilever", "quick"),
     compare_rtol=0.05))
 register_suite(Suite(
     "paper", "the paper's two cases, MeshODENet and MGN, the paper's settings (GPU "
