@@ -94,7 +94,10 @@ def check_training_step(fast, ref, data, n, tol=TOL):
     torch.testing.assert_close(pa, pb, **tol)
     torch.testing.assert_close(va, vb, **tol)
     for x, y in zip(ga, gb, strict=True):
-        torch.testing.assert_close(x, y, **tol)
+        # round-off relative to the gradient's scale, not to each entry: entries that cancel
+        # to ~1e-9 of their tensor's largest one carry that tensor's absolute round-off
+        torch.testing.assert_close(x, y, rtol=tol["rtol"],
+                                   atol=max(tol["atol"], tol["rtol"] * float(y.abs().max())))
 
 
 CONFIGS = [
