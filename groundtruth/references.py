@@ -73,11 +73,19 @@ def elastica(alpha: float = 0.0, beta: float = 0.0, n_mesh: int = 201,
     a0, b0 = lam0 * alpha, lam0 * beta
     th = a0 * (s - s**2 + s**3 / 3) / 2 + b0 * (s - s**2 / 2)   # linear theta(s)
     y = np.vstack([th, np.gradient(th, s), s, np.zeros_like(s)])
-    for lam in np.geomspace(lam0, 1.0, n_steps):
-        sol = solve_bvp(_rhs(lam * alpha, lam * beta), _bc, s, y, tol=1e-8, max_nodes=100_000)
+    return _continuation(lambda lam: _rhs(lam * alpha, lam * beta), np.geomspace(lam0, 1.0, n_steps),
+                         s, y, lambda lam: f"elastica: solve_bvp failed at alpha = {lam * alpha:.4g}, "
+                                           f"beta = {lam * beta:.4g}")
+
+
+def _continuation(rhs_at, loads, s, y, where):
+    """Solve the clamped-free BVP (``_bc``) at each load factor of ``loads`` in turn, each from
+    the previous solution; the shape on ``s`` as a dict (``x``, ``y``, ``theta``, tip
+    displacements ``tip_v``, ``tip_u``). ``where(lam)`` names the failing load in the error."""
+    for lam in loads:
+        sol = solve_bvp(rhs_at(lam), _bc, s, y, tol=1e-8, max_nodes=100_000)
         if not sol.success:
-            raise RuntimeError(f"elastica: solve_bvp failed at alpha = {lam * alpha:.4g}, "
-                               f"beta = {lam * beta:.4g}: {sol.message}")
+            raise RuntimeError(f"{where(lam)}: {sol.message}")
         y = sol.sol(s)
     return {"s": s, "x": y[2], "y": y[3], "theta": y[0], "tip_v": -float(y[3][-1]),
             "tip_u": 1.0 - float(y[2][-1])}
@@ -136,12 +144,6 @@ def elastica_shear(alpha: float, ext: float = 0.0, shear: float = 0.0, n_mesh: i
                          f"{alpha!r}, {ext!r}, {shear!r}")
     s = np.linspace(0.0, 1.0, n_mesh)
     y = np.vstack([np.zeros_like(s), np.zeros_like(s), s, np.zeros_like(s)])
-    for lam in np.linspace(1.0 / n_steps, 1.0, n_steps):
-        sol = solve_bvp(_rhs_reissner(lam * alpha, lam * ext, lam * shear), _bc, s, y, tol=1e-8,
-                        max_nodes=100_000)
-        if not sol.success:
-            raise RuntimeError(f"elastica_shear: solve_bvp failed at alpha = {lam * alpha:.4g}: "
-                               f"{sol.message}")
-        y = sol.sol(s)
-    return {"s": s, "x": y[2], "y": y[3], "theta": y[0], "tip_v": -float(y[3][-1]),
-            "tip_u": 1.0 - float(y[2][-1])}
+    return _continuation(lambda lam: _rhs_reissner(lam * alpha, lam * ext, lam * shear),
+                         np.linspace(1.0 / n_steps, 1.0, n_steps), s, y,
+                         lambda lam: f"elastica_shear: solve_bvp failed at alpha = {lam * alpha:.4g}")
