@@ -56,9 +56,22 @@ def turning_angle(x: torch.Tensor, hinges: torch.Tensor) -> torch.Tensor:
     return base.index_copy(0, i, torch.stack([cos, sin], dim=-1))
 
 
-def static_node_features(batch: GraphBatch, youngs: torch.Tensor, kind: str) -> torch.Tensor:
-    """``(M, NODE_STATIC[kind])`` from ``youngs (n_graphs,)``."""
-    y = youngs.repeat_interleave(batch.n_per_graph)[:, None]
+#: How the Young's modulus enters the node features: the paper's ``Y`` itself, or its logarithm
+#: (a feature spread evenly over a modulus range of 15:1, where the soft rods, which deform
+#: the most, sit in a sliver of the linear range); normalised like every feature.
+YOUNGS_FEATURES = {"linear": lambda y: y, "log": torch.log}
+
+
+def check_youngs_feature(owner: str, value) -> None:
+    if value not in YOUNGS_FEATURES:
+        raise ValueError(f"{owner}.youngs_feature must be one of "
+                         f"{', '.join(YOUNGS_FEATURES)}; got {value!r}")
+
+
+def static_node_features(batch: GraphBatch, youngs: torch.Tensor, kind: str,
+                         youngs_feature: str = "linear") -> torch.Tensor:
+    """``(M, NODE_STATIC[kind])`` from ``youngs (n_graphs,)`` (Pa)."""
+    y = YOUNGS_FEATURES[youngs_feature](youngs).repeat_interleave(batch.n_per_graph)[:, None]
     if kind == "line":
         return y
     onehot = nn.functional.one_hot(batch.node_type, N_NODE_TYPES).to(y.dtype)
@@ -162,9 +175,11 @@ class FeatureStats(nn.Module):
     load a ``state_dict``.
     """
 
-    def __init__(self, kind: str):
+    def __init__(self, kind: str, youngs_feature: str = "linear"):
         super().__init__()
+        check_youngs_feature("FeatureStats", youngs_feature)
         self.kind = kind
+        self.youngs_feature = youngs_feature
         s = NODE_STATIC[kind]
         node_vectors = ((s, s + 3), (s + 5, s + 8)) if kind == "line" else ((s, s + 3),
                                                                             (s + 3, s + 6))
@@ -185,7 +200,7 @@ class FeatureStats(nn.Module):
         for b in range(len(train)):
             x, v = train.pos[b].reshape(-1, 3), train.vel[b].reshape(-1, 3)
             y = train.youngs[b].expand(T)
-            node.add(torch.cat([static_node_features(batch, y, self.kind),
+            node.add(torch.cat([static_node_features(batch, y, self.kind, self.youngs_feature),
                                 dynamic_node_features(x, v, batch, self.kind)], -1))
             edge.add(torch.cat([static_edge_features(batch),
                                 dynamic_edge_features(x, batch)], -1))
@@ -236,7 +251,8 @@ def graph_context(stats: FeatureStats, topology: GraphTopology, youngs: torch.Te
     cast = lambda a: a.to(device=youngs.device, dtype=dtype)
     nm, ns = cast(stats.node.mean), cast(stats.node.std)
     em, es = cast(stats.edge.mean), cast(stats.edge.std)
-    node_static = (static_node_features(batch, youngs.to(dtype), stats.kind) - nm[:s]) / ns[:s]
+    node_static = (static_node_features(batch, youngs.to(dtype), stats.kind,
+                                        stats.youngs_feature) - nm[:s]) / ns[:s]
     edge_static = (static_edge_features(batch) - em[:EDGE_STATIC]) / es[:EDGE_STATIC]
     return cls(batch, stats.kind, node_static, edge_static, nm[s:], ns[s:], em[EDGE_STATIC:],
                es[EDGE_STATIC:], cast(stats.acc.mean), cast(stats.acc.std), **extra)

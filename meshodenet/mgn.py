@@ -48,6 +48,7 @@ from meshodenet.features import (
     EDGE_STATIC,
     FeatureStats,
     GraphContext,
+    check_youngs_feature,
     dynamic_edge_features,
     dynamic_node_features,
     graph_context,
@@ -75,6 +76,7 @@ class MeshGraphNetConfig:
       budget (0, 0.003, 0.01, 0.03, 0.1; docs/MGN.md); at the ``paper`` budget it is untested.
     - ``noise_gamma``: share of the noise the target corrects in position (MeshGraphNets'
       cloth: 0.1), the rest in velocity.
+    - ``youngs_feature``: ``linear`` (the paper) or ``log``, as ``MeshODENetConfig``.
     """
 
     hidden: int = 128
@@ -83,8 +85,10 @@ class MeshGraphNetConfig:
     activation: str = "relu"
     noise: float = 0.0
     noise_gamma: float = 0.1
+    youngs_feature: str = "linear"
 
     def __post_init__(self):
+        check_youngs_feature("MeshGraphNetConfig", self.youngs_feature)
         for name, lo in (("hidden", 1), ("layers", 0), ("mlp_hidden_layers", 0)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
@@ -178,7 +182,7 @@ class MeshGraphNet(TrajectoryModel):
         super().__init__(mesh, config)
         self.topology = GraphTopology(mesh, hinges)
         self.kind = mesh.kind
-        self.stats = FeatureStats(self.kind)
+        self.stats = FeatureStats(self.kind, config.youngs_feature)
         self.register_buffer("dt", torch.zeros((), dtype=torch.float64))
         self.register_buffer("step_rms", torch.zeros((), dtype=torch.float64))
         self.register_buffer("active", torch.ones(3, dtype=torch.float64))

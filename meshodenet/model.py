@@ -25,6 +25,7 @@ from meshodenet.features import (
     EDGE_STATIC,
     FeatureStats,
     GraphContext,
+    check_youngs_feature,
     graph_context,
     n_node_features,
 )
@@ -68,6 +69,8 @@ class MeshODENetConfig:
       that only long rollouts teach last (trained on 1-4 s windows only, rollouts of the
       falling rod diverge after about 5 s; switching from 1 s windows straight to 20 s
       rollouts can overflow). ``E = 0`` keeps ``S`` throughout.
+    - ``youngs_feature``: ``linear`` (the paper: the modulus itself) or ``log`` (its logarithm),
+      see ``meshodenet.features.YOUNGS_FEATURES``.
     """
 
     hidden: int = 128
@@ -83,8 +86,10 @@ class MeshODENetConfig:
     seminorm: bool = True
     shooting: int = 0
     shooting_epochs: int = 0
+    youngs_feature: str = "linear"
 
     def __post_init__(self):
+        check_youngs_feature("MeshODENetConfig", self.youngs_feature)
         for name, lo in (("hidden", 1), ("layers", 0), ("mlp_hidden_layers", 0),
                          ("substeps", 1), ("checkpoint_every", 1), ("shooting", 0),
                          ("shooting_epochs", 0)):
@@ -137,7 +142,7 @@ class MeshODENet(TrajectoryModel):
         super().__init__(mesh, config)
         self.topology = GraphTopology(mesh, hinges)
         self.kind = mesh.kind
-        self.stats = FeatureStats(self.kind)
+        self.stats = FeatureStats(self.kind, config.youngs_feature)
         self.epoch = 0
         self._loss_scales: dict = {}  # horizon -> no-motion loss on the training split
         if train is not None:

@@ -11,6 +11,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 from meshodenet.data import Mesh
+from meshodenet.imex import ImexConfig, MeshODENetIMEX, imex_presets
 from meshodenet.integrators import INTEGRATORS
 from meshodenet.mgn import MeshGraphNet, MeshGraphNetConfig, mgn_presets
 from meshodenet.model import MeshODENet, MeshODENetConfig
@@ -48,6 +49,10 @@ MODELS: dict = {
     "mgn": ModelSpec(MeshGraphNet, MeshGraphNetConfig, mgn_presets,
                      "MeshGraphNet: autoregressive one-step GNN (Pfaff et al. 2021; the paper's "
                      "baseline, section 3)"),
+    "meshodenet_imex": ModelSpec(MeshODENetIMEX, ImexConfig, imex_presets,
+                                 "MeshODENet's GNN with the case's linear drag implicit: "
+                                 "semi-implicit Euler, one evaluation per interval "
+                                 "(docs/TRAINING.md)"),
 }
 
 __all__ = ["MODELS", "INTEGRATORS", "ModelSpec", "get_model_spec", "register_model",

@@ -1,0 +1,131 @@
+"""MeshODENet-IMEX (``meshodenet.imex``) and the ``youngs_feature`` option."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from meshodenet import reference
+from meshodenet.data import Mesh, Trajectories
+from meshodenet.features import FeatureStats
+from meshodenet.imex import ImexConfig, MeshODENetIMEX
+from meshodenet.model import MeshODENetConfig
+from meshodenet.registry import get_model_spec, load_model
+from tests.conftest import rod_arrays, strip_arrays
+
+
+def _build(arrays, dtype=torch.float64, **cfg):
+    mesh, tr = Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays, dtype=dtype)
+    torch.manual_seed(0)
+    model = MeshODENetIMEX(mesh, ImexConfig(hidden=8, mlp_hidden_layers=1, **cfg), tr)
+    return model.to(dtype), tr
+
+
+def _manual_rollout(model, tr, idx, T):
+    """The scheme written out with the reference field, one step at a time."""
+    ctx = model.field_context(tr.youngs[idx])
+    x, v = tr.pos[idx, 0].reshape(-1, 3), tr.vel[idx, 0].reshape(-1, 3) * ctx.batch.free
+    g = model.gamma.repeat(len(idx))[:, None]
+    xs = [x]
+    for k in range(T - 1):
+        h = tr.t[k + 1] - tr.t[k]
+        w = reference.vector_field(model, torch.stack([x, v]), ctx)[1]
+        v = (v + h * g * w) / (1 + h * g)
+        x = x + h * v
+        xs.append(x)
+    return torch.stack(xs).reshape(T, len(idx), -1, 3).transpose(0, 1)
+
+
+@pytest.mark.parametrize("make", [rod_arrays, strip_arrays])
+def test_rollout_is_the_semi_implicit_scheme_with_equal_gradients(make):
+    arrays = make()
+    arrays["damping"] = arrays["mass"] * np.linspace(0.5, 5e4, len(arrays["mass"]))
+    model, tr = _build(arrays)
+    idx = torch.tensor([0, 1])
+    T = tr.n_frames
+    want = _manual_rollout(model, tr, idx, T)
+    got, vel = model.rollout(tr.pos[idx, 0], tr.vel[idx, 0], tr.youngs[idx], tr.t)
+    assert torch.allclose(got, want, rtol=1e-12, atol=1e-15)
+    assert (got[:, :, arrays["node_type"] == 1] == tr.pos[idx, :1][:, :, arrays["node_type"] == 1]
+            ).all()
+    # gradients: the fast field under autograd, with and without segment checkpoints,
+    # against the reference field
+    grads = []
+    for engine, seg in (("reference", 0), ("fast", 0), ("fast", 2)):
+        model.engine = engine
+        object.__setattr__(model.config, "checkpoint_every", seg)
+        model.zero_grad()
+        p, _ = model.rollout(tr.pos[idx, 0], tr.vel[idx, 0], tr.youngs[idx], tr.t)
+        ((p - tr.pos[idx]) ** 2).sum().backward()
+        grads.append(torch.cat([q.grad.reshape(-1) for q in model.parameters()]))
+    for g in grads[1:]:
+        assert torch.allclose(g, grads[0], rtol=1e-10, atol=1e-10 * grads[0].abs().max())
+
+
+def test_stiff_drag_makes_the_step_first_order():
+    """gamma h >> 1: the new velocity is the learned one, whatever the old velocity."""
+    arrays = rod_arrays()
+    arrays["damping"] = arrays["mass"] * 1e12
+    model, tr = _build(arrays)
+    ctx = model.field_context(tr.youngs[:1])
+    x0, v0 = tr.pos[0, 0], tr.vel[0, 3]
+    w = reference.vector_field(model, torch.stack([x0, v0]), ctx)[1]
+    _, vel = model.rollout(x0[None], v0[None], tr.youngs[:1], tr.t[:2])
+    assert torch.allclose(vel[0, 1], w, rtol=1e-9, atol=0)
+
+
+def test_output_normaliser_is_fitted_to_the_learned_velocity_target():
+    arrays = rod_arrays(B=4, T=7)
+    model, tr = _build(arrays)
+    g = arrays["damping"] / arrays["mass"]
+    h = np.diff(arrays["t"])[None, :, None, None]
+    v = arrays["vel"]
+    w = v[:, 1:] + (v[:, 1:] - v[:, :-1]) / (h * g[None, None, :, None])
+    w = w.reshape(-1, 3)
+    np.testing.assert_allclose(model.stats.acc.mean.numpy(), w.mean(0), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(model.stats.acc.std.numpy()[1], w.std(0)[1], rtol=1e-9)
+
+
+def test_bad_drag_and_config_are_refused():
+    arrays = rod_arrays()
+    arrays["damping"] = arrays["damping"].copy()
+    arrays["damping"][2] = 0.0
+    with pytest.raises(ValueError, match="node 2"):
+        _build(arrays)
+    with pytest.raises(ValueError, match="checkpoint_every"):
+        ImexConfig(checkpoint_every=-1)
+    with pytest.raises(ValueError, match="hidden"):
+        ImexConfig(hidden=0)
+    for cls in (ImexConfig, MeshODENetConfig):
+        with pytest.raises(ValueError, match="youngs_feature.*'sqrt'"):
+            cls(youngs_feature="sqrt")
+
+
+def test_log_youngs_feature_is_the_normalised_logarithm():
+    arrays = rod_arrays(B=4)
+    mesh, tr = Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays, dtype=torch.float64)
+    from meshodenet.graph import GraphTopology
+
+    stats = FeatureStats("line", "log").compute(GraphTopology(mesh), tr)
+    y = np.log(arrays["youngs"])
+    assert stats.node.mean[0].item() == pytest.approx(y.mean(), rel=1e-12)
+    assert stats.node.std[0].item() == pytest.approx(y.std(), rel=1e-9)
+
+
+def test_registered_trains_resumes_and_reloads(tmp_path):
+    from meshodenet.train import fit
+
+    arrays = rod_arrays(B=4)
+    mesh, tr = Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays)
+    spec = get_model_spec("meshodenet_imex")
+    tcfg, mcfg = spec.presets("smoke", "line")
+    model = spec.build(mesh, mcfg, tr)
+    fit(model, tr.subset([0, 1, 2]), tr.subset([3]), tcfg, tmp_path, progress=False)
+    fit(model, tr.subset([0, 1, 2]), tr.subset([3]), tcfg, tmp_path, progress=False,
+        resume=True)
+    again, _ = load_model(tmp_path / "best.pt")
+    assert isinstance(again, MeshODENetIMEX)
+    with torch.no_grad():
+        a, _ = again.rollout(tr.pos[:1, 0], tr.vel[:1, 0], tr.youngs[:1], tr.t)
+    assert torch.isfinite(a).all()
