@@ -125,8 +125,14 @@ def _log(msg: str) -> None:
 
 # --- one run (executes in a worker process) -------------------------------------------------
 def _integrator_ids(config: dict) -> tuple[str, str]:
+    """The run's ``integrator`` / ``grad_mode`` columns: its config's, else its model class's
+    ``integrator_id`` / ``grad_mode_id`` (a model with a fixed scheme), else MGN's values."""
+    from meshodenet.registry import get_model_spec
+
     mc = config["model_config"]
-    return mc.get("integrator", NO_INTEGRATOR), mc.get("grad_mode", NO_GRAD_MODE)
+    cls = get_model_spec(config["model"]).model_cls
+    return (mc.get("integrator", getattr(cls, "integrator_id", NO_INTEGRATOR)),
+            mc.get("grad_mode", getattr(cls, "grad_mode_id", NO_GRAD_MODE)))
 
 
 def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,

@@ -34,8 +34,13 @@ NODE_DYNAMIC = {"line": 8, "triangle": 6}
 EDGE_STATIC, EDGE_DYNAMIC = 4, 4
 
 
-def n_node_features(kind: str) -> int:
-    return NODE_STATIC[kind] + NODE_DYNAMIC[kind]
+def n_static(kind: str, rest_position: bool = False) -> int:
+    """Static node features: ``NODE_STATIC[kind]``, plus 3 with ``rest_position``."""
+    return NODE_STATIC[kind] + 3 * bool(rest_position)
+
+
+def n_node_features(kind: str, rest_position: bool = False) -> int:
+    return n_static(kind, rest_position) + NODE_DYNAMIC[kind]
 
 
 def _length_direction(vec: torch.Tensor) -> torch.Tensor:
@@ -69,13 +74,19 @@ def check_youngs_feature(owner: str, value) -> None:
 
 
 def static_node_features(batch: GraphBatch, youngs: torch.Tensor, kind: str,
-                         youngs_feature: str = "linear") -> torch.Tensor:
-    """``(M, NODE_STATIC[kind])`` from ``youngs (n_graphs,)`` (Pa)."""
+                         youngs_feature: str = "linear", rest_position: bool = False
+                         ) -> torch.Tensor:
+    """``(M, n_static(kind, rest_position))`` from ``youngs (n_graphs,)`` (Pa): the modulus
+    (``youngs_feature``), node types (triangle meshes), and with ``rest_position`` the node's
+    rest (material) coordinates, which tell a node where on the body it sits (which a
+    message-passing network of few layers cannot see beyond its neighbourhood)."""
     y = YOUNGS_FEATURES[youngs_feature](youngs).repeat_interleave(batch.n_per_graph)[:, None]
-    if kind == "line":
-        return y
-    onehot = nn.functional.one_hot(batch.node_type, N_NODE_TYPES).to(y.dtype)
-    return torch.cat([y, onehot], dim=-1)
+    out = [y]
+    if kind != "line":
+        out.append(nn.functional.one_hot(batch.node_type, N_NODE_TYPES).to(y.dtype))
+    if rest_position:
+        out.append(batch.rest_pos.to(y.dtype))
+    return torch.cat(out, dim=-1) if len(out) > 1 else y
 
 
 def dynamic_node_features(x: torch.Tensor, v: torch.Tensor, batch: GraphBatch,
@@ -175,15 +186,16 @@ class FeatureStats(nn.Module):
     load a ``state_dict``.
     """
 
-    def __init__(self, kind: str, youngs_feature: str = "linear"):
+    def __init__(self, kind: str, youngs_feature: str = "linear", rest_position: bool = False):
         super().__init__()
         check_youngs_feature("FeatureStats", youngs_feature)
         self.kind = kind
         self.youngs_feature = youngs_feature
-        s = NODE_STATIC[kind]
+        self.rest_position = bool(rest_position)
+        s = n_static(kind, rest_position)
         node_vectors = ((s, s + 3), (s + 5, s + 8)) if kind == "line" else ((s, s + 3),
                                                                             (s + 3, s + 6))
-        self.node = Normalizer(n_node_features(kind), vectors=node_vectors)
+        self.node = Normalizer(n_node_features(kind, rest_position), vectors=node_vectors)
         self.edge = Normalizer(EDGE_STATIC + EDGE_DYNAMIC, vectors=((1, 4), (5, 8)))
         self.acc = Normalizer(3, output=True, vectors=((0, 3),))
 
@@ -200,7 +212,8 @@ class FeatureStats(nn.Module):
         for b in range(len(train)):
             x, v = train.pos[b].reshape(-1, 3), train.vel[b].reshape(-1, 3)
             y = train.youngs[b].expand(T)
-            node.add(torch.cat([static_node_features(batch, y, self.kind, self.youngs_feature),
+            node.add(torch.cat([static_node_features(batch, y, self.kind, self.youngs_feature,
+                                                     self.rest_position),
                                 dynamic_node_features(x, v, batch, self.kind)], -1))
             edge.add(torch.cat([static_edge_features(batch),
                                 dynamic_edge_features(x, batch)], -1))
@@ -247,12 +260,13 @@ def graph_context(stats: FeatureStats, topology: GraphTopology, youngs: torch.Te
     of moduli ``youngs (B,)`` on ``topology``, normalised with ``stats``."""
     dtype = dtype or youngs.dtype
     batch = topology.batch(len(youngs), youngs.device, dtype)
-    s = NODE_STATIC[stats.kind]
+    s = n_static(stats.kind, stats.rest_position)
     cast = lambda a: a.to(device=youngs.device, dtype=dtype)
     nm, ns = cast(stats.node.mean), cast(stats.node.std)
     em, es = cast(stats.edge.mean), cast(stats.edge.std)
     node_static = (static_node_features(batch, youngs.to(dtype), stats.kind,
-                                        stats.youngs_feature) - nm[:s]) / ns[:s]
+                                        stats.youngs_feature, stats.rest_position)
+                   - nm[:s]) / ns[:s]
     edge_static = (static_edge_features(batch) - em[:EDGE_STATIC]) / es[:EDGE_STATIC]
     return cls(batch, stats.kind, node_static, edge_static, nm[s:], ns[s:], em[EDGE_STATIC:],
                es[EDGE_STATIC:], cast(stats.acc.mean), cast(stats.acc.std), **extra)

@@ -61,7 +61,8 @@ class GraphBatch:
     Node ``b * n_per_graph + i`` is node ``i`` of copy ``b``. Shapes (``M`` = all nodes,
     ``D`` = all directed edges): ``senders, receivers (D,)``, ``hinges (H_all, 3)``,
     ``free (M, 1)`` (1 free, 0 clamped), ``force (M, 3)``, ``damping (M, 1)``,
-    ``node_type (M,)``, ``rest_vec (D, 3)`` (rest x_j - x_i along each directed edge).
+    ``node_type (M,)``, ``rest_vec (D, 3)`` (rest x_j - x_i along each directed edge),
+    ``rest_pos (M, 3)`` (rest positions).
     """
 
     n_graphs: int
@@ -74,6 +75,7 @@ class GraphBatch:
     damping: torch.Tensor
     node_type: torch.Tensor
     rest_vec: torch.Tensor
+    rest_pos: torch.Tensor
 
     @property
     def n_nodes(self) -> int:
@@ -118,4 +120,4 @@ class GraphTopology:
             free=tile((m.node_type == 0).astype(np.float64)[:, None]),
             force=tile(m.force), damping=tile(m.damping[:, None]),
             node_type=torch.as_tensor(np.tile(m.node_type, n_graphs), device=device),
-            rest_vec=tile(rest))
+            rest_vec=tile(rest), rest_pos=tile(m.rest_pos))

@@ -34,7 +34,7 @@ curriculum, validation) is MeshODENet's.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch.utils.checkpoint import checkpoint
@@ -50,8 +50,8 @@ from meshodenet.presets import check_preset, meshodenet_presets
 class ImexConfig:
     """Architecture and training horizon of MeshODENet-IMEX (meanings as ``MeshODENetConfig``):
     ``hidden``, ``layers``, ``mlp_hidden_layers``, ``activation``, ``shooting``,
-    ``shooting_epochs``, ``youngs_feature``; ``checkpoint_every`` steps per recomputed segment in the backward
-    pass (0: keep the whole graph; the same gradient either way)."""
+    ``shooting_epochs``, ``youngs_feature``, ``rest_position``; ``checkpoint_every`` steps
+    per recomputed segment in the backward pass (0: keep the whole graph; the same gradient either way)."""
 
     hidden: int = 128
     layers: int = 1
@@ -61,6 +61,7 @@ class ImexConfig:
     shooting_epochs: int = 0
     checkpoint_every: int = 0
     youngs_feature: str = "linear"
+    rest_position: bool = False
 
     def __post_init__(self):
         # MeshODENetConfig checks the shared fields (names, types, ranges)
@@ -74,13 +75,18 @@ class ImexConfig:
                                 mlp_hidden_layers=self.mlp_hidden_layers,
                                 activation=self.activation, shooting=self.shooting,
                                 shooting_epochs=self.shooting_epochs,
-                                youngs_feature=self.youngs_feature)
+                                youngs_feature=self.youngs_feature,
+                                rest_position=self.rest_position)
 
 
 class MeshODENetIMEX(MeshODENet):
     """See the module docstring. Shapes as ``TrajectoryModel``."""
 
     name = "meshodenet_imex"
+    #: the ``integrator`` / ``grad_mode`` columns of results CSVs (segment checkpoints, when
+    #: set, give the same gradient as direct backpropagation)
+    integrator_id = "imex_euler"
+    grad_mode_id = "direct"
 
     def __init__(self, mesh: Mesh, config: ImexConfig, train: Trajectories | None = None,
                  hinges=None):
@@ -157,15 +163,27 @@ class MeshODENetIMEX(MeshODENet):
         raise NotImplementedError("MeshODENet-IMEX steps its own scheme; use rollout")
 
 
+#: ``quick`` changes from MeshODENet's ``quick`` (validation experiments in docs/TRAINING.md):
+#: the logarithm of the modulus as feature, and twice the epochs (a quarter of the field
+#: evaluations per optimizer step), the learning rate divided by 10 for the last 8.
+QUICK_CHANGES = {
+    "line": (dict(epochs=20, lr_milestones=(12,)), dict(youngs_feature="log")),
+    "triangle": (dict(), dict(youngs_feature="log")),
+}
+
+
 def imex_presets(preset: str, kind: str) -> tuple:
     """``(TrainConfig, ImexConfig)``: MeshODENet's preset of the same name (the same GNN,
-    optimiser and curriculum), with the epochs of ``quick`` set by ``QUICK_EPOCHS``: a quarter
-    of the field evaluations per step buys more optimizer steps in the same time."""
+    optimiser and curriculum); ``quick`` with ``QUICK_CHANGES``."""
     check_preset(preset)
     tc, mc = meshodenet_presets(preset, kind)
     cfg = ImexConfig(hidden=mc.hidden, layers=mc.layers, mlp_hidden_layers=mc.mlp_hidden_layers,
                      activation=mc.activation, shooting=mc.shooting,
-                     shooting_epochs=mc.shooting_epochs, youngs_feature=mc.youngs_feature)
+                     shooting_epochs=mc.shooting_epochs, youngs_feature=mc.youngs_feature,
+                     rest_position=mc.rest_position)
+    if preset == "quick" and kind in QUICK_CHANGES:
+        t, m = QUICK_CHANGES[kind]
+        tc, cfg = replace(tc, **t), replace(cfg, **m)
     return tc, cfg
 
 

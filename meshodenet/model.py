@@ -71,6 +71,8 @@ class MeshODENetConfig:
       rollouts can overflow). ``E = 0`` keeps ``S`` throughout.
     - ``youngs_feature``: ``linear`` (the paper: the modulus itself) or ``log`` (its logarithm),
       see ``meshodenet.features.YOUNGS_FEATURES``.
+    - ``rest_position``: add the node's rest coordinates to its static features (not in the
+      paper; ``meshodenet.features.static_node_features``).
     """
 
     hidden: int = 128
@@ -87,8 +89,11 @@ class MeshODENetConfig:
     shooting: int = 0
     shooting_epochs: int = 0
     youngs_feature: str = "linear"
+    rest_position: bool = False
 
     def __post_init__(self):
+        if not isinstance(self.rest_position, bool):
+            raise ValueError(f"MeshODENetConfig.rest_position must be a bool, got {self.rest_position!r}")
         check_youngs_feature("MeshODENetConfig", self.youngs_feature)
         for name, lo in (("hidden", 1), ("layers", 0), ("mlp_hidden_layers", 0),
                          ("substeps", 1), ("checkpoint_every", 1), ("shooting", 0),
@@ -142,13 +147,13 @@ class MeshODENet(TrajectoryModel):
         super().__init__(mesh, config)
         self.topology = GraphTopology(mesh, hinges)
         self.kind = mesh.kind
-        self.stats = FeatureStats(self.kind, config.youngs_feature)
+        self.stats = FeatureStats(self.kind, config.youngs_feature, config.rest_position)
         self.epoch = 0
         self._loss_scales: dict = {}  # horizon -> no-motion loss on the training split
         if train is not None:
             self.stats.compute(self.topology, train)
         self.gnn = EncodeProcessDecode(
-            n_node_features(self.kind), EDGE_STATIC + EDGE_DYNAMIC, 3, config.hidden,
+            n_node_features(self.kind, config.rest_position), EDGE_STATIC + EDGE_DYNAMIC, 3, config.hidden,
             config.layers, config.mlp_hidden_layers, config.activation, layer_norm=False)
         self.nfe = 0
 
