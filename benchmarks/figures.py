@@ -11,7 +11,7 @@ import pandas as pd
 
 from groundtruth import store
 
-COLORS = {"meshodenet": "tab:blue", "mgn": "tab:red"}
+COLORS = {"meshodenet": "tab:blue", "mgn": "tab:red", "meshodenet_imex": "tab:green"}
 
 
 def _plt():

@@ -108,6 +108,11 @@ def _both(case: str, preset: str) -> tuple:
     return (RunSpec(case, "meshodenet", preset), RunSpec(case, "mgn", preset))
 
 
+def _three(case: str, preset: str) -> tuple:
+    """MeshODENet, MGN and our MeshODENet-IMEX (docs/TRAINING.md)."""
+    return _both(case, preset) + (RunSpec(case, "meshodenet_imex", preset),)
+
+
 SUITES: dict = {}
 
 
@@ -126,9 +131,9 @@ register_suite(Suite(
     "smoke", "rod_cantilever (6 short trajectories), both models, smoke preset: about a "
     "minute, for the tests", _both("rod_cantilever", "smoke")))
 register_suite(Suite(
-    "quick", "the paper's two cases, MeshODENet and MGN, quick preset: about 35 minutes "
-    "(data and one seed) on a shared 2-core CPU with --jobs 2 (README)",
-    _both("rod_falling", "quick") + _both("plate_cantilever", "quick"),
+    "quick", "the paper's two cases, MeshODENet, MGN and MeshODENet-IMEX, quick preset: about "
+    "40 minutes (data and one seed) on a shared 2-core CPU with --jobs 2 (README)",
+    _three("rod_falling", "quick") + _three("plate_cantilever", "quick"),
     compare_rtol=0.05))
 register_suite(Suite(
     "paper", "the paper's two cases, MeshODENet and MGN, the paper's settings (GPU "
