@@ -39,7 +39,6 @@ from dataclasses import dataclass, replace
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from meshodenet import fast, reference
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import _Moments
 from meshodenet.model import MeshODENet, MeshODENetConfig
@@ -110,8 +109,7 @@ class MeshODENetIMEX(MeshODENet):
         g = self.gamma.to(train.vel.dtype)[None, :, None]
         mom = _Moments()
         for b in range(len(train)):
-            v = train.vel[b]
-            v = v[:, free]
+            v = train.vel[b][:, free]
             mom.add(v[1:] + (v[1:] - v[:-1]) / (h * g[:, free]))
         self.stats.acc.set_stats(*mom.result())
 
@@ -137,11 +135,7 @@ class MeshODENetIMEX(MeshODENet):
         x, v = x0.reshape(-1, 3), v0.reshape(-1, 3) * ctx.batch.free
         g = self._gamma(B, x0.dtype)
         h = t[1:] - t[:-1]
-        if self.engine == "reference":
-            field = lambda z: reference.vector_field(self, z, ctx)  # noqa: E731
-        else:
-            ff = fast.FastField(self, ctx)
-            field = lambda z: fast.evaluate(ff, z)  # noqa: E731
+        field = self.field_fn(ctx)  # differentiable on both engines
         seg = self.config.checkpoint_every if torch.is_grad_enabled() else 0
         seg = seg or max(len(h), 1)
         xs, vs = [x], [v]
@@ -154,8 +148,7 @@ class MeshODENetIMEX(MeshODENet):
             x, v = xk[-1], vk[-1]
             xs.append(xk)
             vs.append(vk)
-        pos = torch.cat([xs[0][None]] + xs[1:]) if len(h) else xs[0][None]
-        vel = torch.cat([vs[0][None]] + vs[1:]) if len(h) else vs[0][None]
+        pos, vel = torch.cat([xs[0][None], *xs[1:]]), torch.cat([vs[0][None], *vs[1:]])
         shape = (len(t), B, N, 3)
         return pos.reshape(shape).transpose(0, 1), vel.reshape(shape).transpose(0, 1)
 
