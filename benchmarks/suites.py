@@ -132,7 +132,7 @@ register_suite(Suite(
     "minute, for the tests", _both("rod_cantilever", "smoke")))
 register_suite(Suite(
     "quick", "the paper's two cases, MeshODENet, MGN and MeshODENet-IMEX, quick preset: about "
-    "40 minutes (data and one seed) on a shared 2-core CPU with --jobs 2 (README)",
+    "20 minutes (data and one seed) on a shared 2-core CPU with --jobs 2 (README)",
     _three("rod_falling", "quick") + _three("plate_cantilever", "quick"),
     compare_rtol=0.05))
 register_suite(Suite(
