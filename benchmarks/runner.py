@@ -164,7 +164,7 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
 def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str) -> dict:
     import torch
 
-    from benchmarks.runs import resolve_run, rollout_arrays, train_run
+    from benchmarks.runs import resolve_run, rollout_arrays, train_run, with_defaults
 
     overrides = spec.all_overrides()
     config = resolve_run(spec.case, spec.model, spec.preset, data_dir=data_dir,
@@ -172,7 +172,7 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
     rec_path = run_dir / RECORD_FILE
     if rec_path.exists():
         rec = json.loads(rec_path.read_text())
-        if rec.get("config") == config and (run_dir / METRICS_FILE).exists():
+        if with_defaults(rec.get("config")) == config and (run_dir / METRICS_FILE).exists():
             rec["reused"] = True
             return rec
     # every input is checked before the first epoch: a corrupt test split fails now
@@ -184,7 +184,7 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
             old = json.loads((run_dir / "config.json").read_text())
         except (OSError, json.JSONDecodeError):
             old, why = None, "config.json is unreadable"
-        if old == config and (run_dir / "last.pt").exists():
+        if with_defaults(old) == config and (run_dir / "last.pt").exists():
             from meshodenet.train import CheckpointError, load_checkpoint
 
             try:

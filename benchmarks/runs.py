@@ -94,6 +94,28 @@ def _diff(a: dict, b: dict, prefix: str = "") -> list[str]:
     return out
 
 
+def with_defaults(config: dict) -> dict:
+    """``config`` (a stored ``config.json``) with the training and model settings it lacks set
+    to their defaults: a run stored before a setting existed ran with that setting's default,
+    so it compares equal to today's configuration with the default (and differs from one that
+    sets another value). Unknown models and non-dict configs are returned as they are."""
+    from meshodenet.registry import MODELS
+    from meshodenet.train import TrainConfig
+
+    if not isinstance(config, dict) or config.get("model") not in MODELS:
+        return config
+    out = dict(config)
+    for key, cls in (("train", TrainConfig), ("model_config", MODELS[config["model"]].config_cls)):
+        if not isinstance(config.get(key), dict) or not dataclasses.is_dataclass(cls):
+            continue
+        filled = dict(config[key])
+        for f in dataclasses.fields(cls):
+            if f.name not in filled and f.default is not dataclasses.MISSING:
+                filled[f.name] = json.loads(json.dumps(f.default))
+        out[key] = filled
+    return out
+
+
 def resolve_run(case_id: str, model_id: str, preset: str, *, data_dir=None, overrides=(),
                 epochs: int | None = None) -> dict:
     """Everything a training run is determined by, resolved without training: the case's
@@ -160,6 +182,7 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"--resume: {cfg_path} is unreadable ({e}); start the run again "
                              f"with `rm -r {out}` and the same command without --resume") from None
+        old = with_defaults(old)
         diffs = [d for d in _diff(old, config) if not d.startswith(("train.epochs:",
                                                                      "overrides:"))]
         if diffs:

@@ -246,3 +246,48 @@ def test_every_registered_suite_resolves():
     assert "rod_falling-meshodenet-quick-dopri5-direct-s1" in ids and len(ids) == 12
     assert [r.run_id for r in SUITES["quick"].runs(only="*-mgn-*")] == [
         "rod_falling-mgn-quick-s0", "plate_cantilever-mgn-quick-s0"]
+
+
+def test_runs_stored_before_a_setting_existed_are_reused_with_its_default(smoke, tmp_path):
+    """A setting added to a config class after a run was stored: the stored run ran with the
+    setting's default, so it is reused (and resumable) while the preset keeps the default,
+    and retrained when the preset sets another value."""
+    import shutil
+
+    import torch
+
+    from benchmarks.runner import execute_run
+    from benchmarks.runs import with_defaults
+    from benchmarks.suites import RunSpec
+
+    root, _ = smoke
+    data = str(root / "data")
+    src = root / "runs" / "rod_cantilever-mgn-smoke-s0"
+    run_dir = tmp_path / "old"
+    threads = torch.get_num_threads()
+    spec = RunSpec("rod_cantilever", "mgn", "smoke", overrides=("train.lr=0.002",))
+    try:
+        execute_run(spec, str(src), data, 1, (), False)
+        shutil.copytree(src, run_dir, ignore=shutil.ignore_patterns(".lock"))
+
+        def strip(name, value=None):
+            for f, get in (("record.json", lambda d: d["config"]), ("config.json", lambda d: d)):
+                d = json.loads((run_dir / f).read_text())
+                mc = get(d)["model_config"]
+                mc.pop(name) if value is None else mc.__setitem__(name, value)
+                (run_dir / f).write_text(json.dumps(d))
+
+        strip("acc_norm")  # as written before acc_norm existed
+        stored = json.loads((run_dir / "config.json").read_text())
+        assert "acc_norm" not in stored["model_config"]
+        assert with_defaults(stored)["model_config"]["acc_norm"] == "component"
+        assert execute_run(spec, str(run_dir), data, 1, (), False)["reused"]
+        # the same stored run against a preset that sets another value: retrained
+        other = RunSpec("rod_cantilever", "mgn", "smoke",
+                        overrides=("train.lr=0.002", "model.acc_norm=vector"))
+        rec = execute_run(other, str(run_dir), data, 1, (), False)
+        assert not rec["reused"] and rec["config"]["model_config"]["acc_norm"] == "vector"
+    finally:
+        torch.set_num_threads(threads)
+    assert with_defaults({"model": "not-registered", "train": {}}) == {"model": "not-registered",
+                                                                      "train": {}}
