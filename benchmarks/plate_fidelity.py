@@ -221,7 +221,7 @@ def main(argv=None) -> int:
                   f" rad/s, ratios {r['ratio_euler_bernoulli']:.4f} {r['ratio_continuum']:.4f}")
     if what[0] in ("damping", "all"):
         rows, best = damping_fit(case)
-        _write("damping_fit.csv", rows + [dict(best, damping_rate=best["damping_rate"])])
+        _write("damping_fit.csv", rows + [dict(best)])
         for r in rows:
             print(f"c {r['damping_rate']:5.1f} 1/s: Y {r['youngs']:.4g} Pa, rms {r['rms_m']:.4f} m,"
                   f" max {r['max_abs_m']:.4f} m")
