@@ -438,6 +438,7 @@ def _case_test_youngs(case_id):
 def compare(new: dict, base: dict, base_impl: str | None = None) -> list[str]:
     """Lines of ratios ``new / base`` (higher is better for rates, lower for times)."""
     lines = []
+    changed = set()  # cases whose mesh differs from the baseline's: nothing of theirs compared
 
     def pick(d, prefer):
         if prefer and prefer in d:
@@ -447,6 +448,11 @@ def compare(new: dict, base: dict, base_impl: str | None = None) -> list[str]:
     for g, e in new.get("graphs", {}).items():
         b = base.get("graphs", {}).get(g)
         if not b:
+            continue
+        if (b.get("nodes"), b.get("directed_edges")) != (e.get("nodes"), e.get("directed_edges")):
+            lines.append(f"{g:6s} not compared: the baseline's graph has {b.get('nodes')} nodes, "
+                         f"{b.get('directed_edges')} directed edges, this run's {e.get('nodes')}, "
+                         f"{e.get('directed_edges')} (the case changed)")
             continue
         for reg, res in e["regimes"].items():
             br = b["regimes"].get(reg)
@@ -460,13 +466,19 @@ def compare(new: dict, base: dict, base_impl: str | None = None) -> list[str]:
         b = base.get("epochs", {}).get(c)
         if not b:
             continue
+        bn, nn = pick(b, base_impl).get("nodes"), next(iter(e.values())).get("nodes")
+        if bn != nn:
+            changed.add(c)
+            lines.append(f"{c}: not compared (paper epoch, surrogate, MGN): the baseline's "
+                         f"mesh has {bn} nodes, this run's {nn} (the case changed)")
+            continue
         bv = pick(b, base_impl)["epoch_s"]
         for i, r in e.items():
             lines.append(f"paper epoch {c} {i}: {r['epoch_s']:.1f} s vs {bv:.1f} s: "
                          f"x{bv / r['epoch_s']:.2f} faster")
     for c, e in new.get("surrogate", {}).items():
         b = base.get("surrogate", {}).get(c)
-        if not b:
+        if not b or c in changed:
             continue
         bi = {k: v for k, v in b.items() if k != "solver"}
         bv = pick(bi, base_impl)
@@ -480,7 +492,7 @@ def compare(new: dict, base: dict, base_impl: str | None = None) -> list[str]:
                          f"(x{bv['batched_per_trajectory_s'] / r['batched_per_trajectory_s']:.2f})")
     for c, e in new.get("mgn", {}).items():
         b = base.get("mgn", {}).get(c)
-        if not b:
+        if not b or c in changed:
             continue
         bv = pick({k: v for k, v in b.items() if isinstance(v, dict)}, base_impl)
         for i, r in e.items():

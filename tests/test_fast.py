@@ -252,6 +252,28 @@ def test_bench_engine_cli_json_report_and_compare(tmp_path, capsys):
     assert main(["bench", "engine", "--graphs", "rod2"]) == 2
 
 
+def test_bench_compare_skips_a_graph_whose_mesh_changed():
+    """A baseline measured on another mesh of the same graph name (the plate before the in-plane
+    case) is not compared: its rates are of other work."""
+    from benchmarks.enginebench import compare
+
+    def res(nodes, rate, epoch_s):
+        r = {"evals_per_s": rate}
+        return {"graphs": {"plate": {"nodes": nodes, "directed_edges": 5 * nodes,
+                                     "regimes": {"train": {"fast": r}}}},
+                "epochs": {"plate_cantilever": {"fast": {"epoch_s": epoch_s, "nodes": nodes}}}}
+
+    same = compare(res(182, 90.0, 800.0), res(182, 45.0, 1600.0))
+    assert any("x2.00" in line for line in same) and any("x2.00 faster" in line for line in same)
+    other = compare(res(182, 90.0, 800.0), res(150, 45.0, 1600.0))
+    assert len(other) == 2 and all("not compared" in line and "150" in line for line in other)
+    base = res(150, 45.0, 1600.0)
+    base["surrogate"] = {"plate_cantilever": {"solver": {}, "fast": {"single_s": 1.0}}}
+    new = res(182, 90.0, 800.0)
+    new["surrogate"] = {"plate_cantilever": {"solver": {}, "fast": {"single_s": 2.0}}}
+    assert len(compare(new, base)) == 2  # the surrogate of the changed case is skipped too
+
+
 def test_pyg_scatter_reference_matches_handwritten_to_round_off():
     """The reference path's sum at the receivers through PyG's ``scatter`` (the default) against
     ``index_add_``: the two kernels accumulate in different orders, so on the paper-size field
