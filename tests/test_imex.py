@@ -233,6 +233,9 @@ def test_release_fraction_is_checked_and_old_runs_read_as_the_default():
     tc, mc = imex_presets("quick", "triangle")
     with pytest.raises(ValueError, match=r"release_fraction .*2\.0"):
         apply_overrides(tc, mc, ["model.release_fraction=2"])
+    # the plate's quick preset oversamples the release, the rod's and MeshODENet's do not
+    assert mc.release_fraction == 0.05 and imex_presets("quick", "line")[1].release_fraction == 0
+    assert get_model_spec("meshodenet").presets("quick", "triangle")[1].release_fraction == 0
     stored = {"model": "meshodenet_imex", "model_config": {"hidden": 32}, "train": {}}
     assert with_defaults(stored)["model_config"]["release_fraction"] == 0.0
     stored["model"] = "meshodenet"
