@@ -41,7 +41,7 @@ from torch.utils.checkpoint import checkpoint
 
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import _Moments
-from meshodenet.model import MeshODENet, MeshODENetConfig
+from meshodenet.model import MeshODENet, MeshODENetConfig, check_fraction
 from meshodenet.presets import check_preset, meshodenet_presets
 
 
@@ -49,7 +49,8 @@ from meshodenet.presets import check_preset, meshodenet_presets
 class ImexConfig:
     """Architecture and training horizon of MeshODENet-IMEX (meanings as ``MeshODENetConfig``):
     ``hidden``, ``layers``, ``mlp_hidden_layers``, ``activation``, ``shooting``,
-    ``shooting_epochs``, ``youngs_feature``, ``rest_position``; ``checkpoint_every`` steps
+    ``shooting_epochs``, ``youngs_feature``, ``rest_position``, ``release_fraction``;
+    ``checkpoint_every`` steps
     per recomputed segment in the backward pass (0: keep the whole graph; the same gradient either way)."""
 
     hidden: int = 128
@@ -61,8 +62,10 @@ class ImexConfig:
     checkpoint_every: int = 0
     youngs_feature: str = "linear"
     rest_position: bool = False
+    release_fraction: float = 0.0
 
     def __post_init__(self):
+        check_fraction("ImexConfig", "release_fraction", self.release_fraction)
         # MeshODENetConfig checks the shared fields (names, types, ranges)
         self.base()
         v = self.checkpoint_every
@@ -75,7 +78,8 @@ class ImexConfig:
                                 activation=self.activation, shooting=self.shooting,
                                 shooting_epochs=self.shooting_epochs,
                                 youngs_feature=self.youngs_feature,
-                                rest_position=self.rest_position)
+                                rest_position=self.rest_position,
+                                release_fraction=self.release_fraction)
 
 
 class MeshODENetIMEX(MeshODENet):
@@ -157,11 +161,12 @@ class MeshODENetIMEX(MeshODENet):
 
 
 #: ``quick`` changes from MeshODENet's ``quick`` (validation experiments in docs/TRAINING.md):
-#: the logarithm of the modulus as feature, and twice the epochs (a quarter of the field
-#: evaluations per optimizer step), the learning rate divided by 10 for the last 8.
+#: the logarithm of the modulus as feature; rods: twice the epochs (a quarter of the field
+#: evaluations per optimizer step), the learning rate divided by 10 for the last 8; plates:
+#: 5 % of the training windows start at the release (``release_fraction``).
 QUICK_CHANGES = {
     "line": (dict(epochs=20, lr_milestones=(12,)), dict(youngs_feature="log")),
-    "triangle": (dict(), dict(youngs_feature="log")),
+    "triangle": (dict(), dict(youngs_feature="log", release_fraction=0.05)),
 }
 
 
@@ -173,7 +178,7 @@ def imex_presets(preset: str, kind: str) -> tuple:
     cfg = ImexConfig(hidden=mc.hidden, layers=mc.layers, mlp_hidden_layers=mc.mlp_hidden_layers,
                      activation=mc.activation, shooting=mc.shooting,
                      shooting_epochs=mc.shooting_epochs, youngs_feature=mc.youngs_feature,
-                     rest_position=mc.rest_position)
+                     rest_position=mc.rest_position, release_fraction=mc.release_fraction)
     if preset == "quick" and kind in QUICK_CHANGES:
         t, m = QUICK_CHANGES[kind]
         tc, cfg = replace(tc, **t), replace(cfg, **m)

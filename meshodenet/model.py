@@ -41,6 +41,26 @@ def _check_int(obj, name, lo):
         raise ValueError(f"{type(obj).__name__}.{name} must be an int >= {lo}, got {v!r}")
 
 
+def check_fraction(owner: str, name: str, value) -> None:
+    """A number in ``[0, 1]`` (not a bool), else one line naming ``owner.name`` and the value."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not math.isfinite(value) or not 0 <= value <= 1:
+        raise ValueError(f"{owner}.{name} must be a number in [0, 1], got {value!r}")
+
+
+def release_count(fraction: float, n: int, generator=None) -> int:
+    """How many of a batch's ``n`` windows start at the release: ``fraction * n`` rounded down
+    or up at random (up with probability its fractional part, one draw from ``generator``
+    only when it has one), so that the expected count is ``fraction * n``."""
+    if not fraction:
+        return 0
+    x = round(fraction * n, 9)
+    k = math.floor(x)
+    if x > k:
+        k += int(float(torch.rand((), generator=generator, dtype=torch.float64)) < x - k)
+    return k
+
+
 def _check_choice(obj, name, valid):
     v = getattr(obj, name)
     if v not in valid:
@@ -73,6 +93,12 @@ class MeshODENetConfig:
       see ``meshodenet.features.YOUNGS_FEATURES``.
     - ``rest_position``: add the node's rest coordinates to its static features (not in the
       paper; ``meshodenet.features.static_node_features``).
+    - ``release_fraction``: with windows shorter than the trajectory, this fraction of each
+      training batch's windows start at frame 0 (the release from rest) instead of their drawn
+      start (not in the paper; the release transient is otherwise in about one window in
+      ``n_intervals / S``). ``p n`` windows of a batch of ``n``, rounded up or down at random
+      with the trainer's generator (drawn only when ``p n`` is not an integer); 0 (default)
+      draws nothing and changes nothing.
     """
 
     hidden: int = 128
@@ -90,8 +116,10 @@ class MeshODENetConfig:
     shooting_epochs: int = 0
     youngs_feature: str = "linear"
     rest_position: bool = False
+    release_fraction: float = 0.0
 
     def __post_init__(self):
+        check_fraction("MeshODENetConfig", "release_fraction", self.release_fraction)
         if not isinstance(self.rest_position, bool):
             raise ValueError(f"MeshODENetConfig.rest_position must be a bool, got {self.rest_position!r}")
         check_youngs_feature("MeshODENetConfig", self.youngs_feature)
@@ -255,6 +283,9 @@ class MeshODENet(TrajectoryModel):
                                  "frames; set shooting=0 for this data")
             start = start + torch.randint(0, n_int - n_w * S + 1, (len(samples),),
                                           generator=generator)
+            k = release_count(self.config.release_fraction, len(samples), generator)
+            if k:  # the batch's order is already random: its first k windows
+                start[:k] = 0
         dev = data.pos.device
         traj, start = traj.to(dev), start.to(dev)
         frames = start[:, None] + torch.arange(S + 1, device=dev)

@@ -170,3 +170,73 @@ def test_mgn_vector_acceleration_normaliser():
     assert sv[2] == 0 and torch.equal(comp.active, vec.active)
     with pytest.raises(ValueError, match="acc_norm"):
         MeshGraphNetConfig(acc_norm="per_node")
+
+
+def _window_starts(model, tr, samples, gen):
+    """``(trajectory, start frame)`` of each window ``training_loss`` rolls out."""
+    seen = []
+
+    def spy(x0, v0, youngs, t):
+        seen.append(x0.clone())
+        n = len(x0)
+        return x0[:, None].expand(n, len(t), *x0.shape[1:]), None
+
+    model.rollout = spy
+    model.training_loss(tr, samples, gen)
+    del model.rollout
+    x0 = seen[0]  # (n, N, 3): match each against every frame of every trajectory
+    d = ((tr.pos[None] - x0[:, None, None]) ** 2).sum((-1, -2))  # (n, B, T)
+    flat = d.reshape(len(x0), -1).argmin(1)
+    return flat // tr.n_frames, flat % tr.n_frames
+
+
+def test_release_fraction_default_draws_nothing_and_option_starts_windows_at_frame_0():
+    from meshodenet.model import release_count
+
+    arrays = rod_arrays(B=4, T=8)  # 7 intervals: windows of 2, 3 per trajectory, offset 0-1
+    model, tr = _build(arrays, shooting=2)
+    tr.pos[..., 0] += torch.arange(tr.n_frames, dtype=tr.pos.dtype)[None, :, None]  # unique
+    tr.pos[..., 1] += 100 * torch.arange(len(tr), dtype=tr.pos.dtype)[:, None, None]  # frames
+    n_w = 3
+    samples = torch.tensor([1, 5, 7, 10, 11, 4])
+    for frac, n0 in ((0.0, 0), (0.5, 3), (1.0, 6)):  # integer counts: no extra draw
+        model.config = ImexConfig(hidden=8, mlp_hidden_layers=1, shooting=2,
+                                  release_fraction=frac)
+        gen = torch.Generator().manual_seed(3)
+        ref = torch.Generator().manual_seed(3)
+        offset = torch.randint(0, 2, (len(samples),), generator=ref)  # today's only draw
+        traj, start = _window_starts(model, tr, samples, gen)
+        want = (samples % n_w) * 2 + offset
+        want[:n0] = 0
+        assert traj.tolist() == (samples // n_w).tolist()
+        assert start.tolist() == want.tolist()
+        assert torch.equal(gen.get_state(), ref.get_state())
+    # a fractional count is rounded up with probability its fractional part, from the generator
+    gen = torch.Generator().manual_seed(0)
+    counts = [release_count(0.3, 4, gen) for _ in range(4000)]
+    assert set(counts) == {1, 2}
+    assert np.mean(counts) == pytest.approx(1.2, abs=0.03)
+    g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    assert [release_count(0.3, 4, g1) for _ in range(50)] == \
+        [release_count(0.3, 4, g2) for _ in range(50)]
+    assert release_count(0.0, 4, None) == 0 and release_count(0.25, 8, None) == 2
+
+
+def test_release_fraction_is_checked_and_old_runs_read_as_the_default():
+    from benchmarks.runs import apply_overrides, with_defaults
+    from meshodenet.imex import imex_presets
+
+    for cls in (ImexConfig, MeshODENetConfig):
+        for bad in (1.5, -0.1, float("nan"), True, "0.5"):
+            with pytest.raises(ValueError, match=rf"{cls.__name__}\.release_fraction .*{bad!r}"):
+                cls(release_fraction=bad)
+    tc, mc = imex_presets("quick", "triangle")
+    with pytest.raises(ValueError, match=r"release_fraction .*2\.0"):
+        apply_overrides(tc, mc, ["model.release_fraction=2"])
+    # the plate's quick preset oversamples the release, the rod's and MeshODENet's do not
+    assert mc.release_fraction == 0.05 and imex_presets("quick", "line")[1].release_fraction == 0
+    assert get_model_spec("meshodenet").presets("quick", "triangle")[1].release_fraction == 0
+    stored = {"model": "meshodenet_imex", "model_config": {"hidden": 32}, "train": {}}
+    assert with_defaults(stored)["model_config"]["release_fraction"] == 0.0
+    stored["model"] = "meshodenet"
+    assert with_defaults(stored)["model_config"]["release_fraction"] == 0.0
