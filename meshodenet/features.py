@@ -73,6 +73,11 @@ def check_youngs_feature(owner: str, value) -> None:
                          f"{', '.join(YOUNGS_FEATURES)}; got {value!r}")
 
 
+def check_rest_position(owner: str, value) -> None:
+    if not isinstance(value, bool):
+        raise ValueError(f"{owner}.rest_position must be a bool, got {value!r}")
+
+
 def static_node_features(batch: GraphBatch, youngs: torch.Tensor, kind: str,
                          youngs_feature: str = "linear", rest_position: bool = False
                          ) -> torch.Tensor:

@@ -50,8 +50,8 @@ class ImexConfig:
     """Architecture and training horizon of MeshODENet-IMEX (meanings as ``MeshODENetConfig``):
     ``hidden``, ``layers``, ``mlp_hidden_layers``, ``activation``, ``shooting``,
     ``shooting_epochs``, ``youngs_feature``, ``rest_position``, ``release_fraction``;
-    ``checkpoint_every`` steps
-    per recomputed segment in the backward pass (0: keep the whole graph; the same gradient either way)."""
+    ``checkpoint_every`` steps per recomputed segment in the backward pass (0: keep the whole
+    graph; the same gradient either way)."""
 
     hidden: int = 128
     layers: int = 1

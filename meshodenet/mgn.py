@@ -48,6 +48,7 @@ from meshodenet.features import (
     EDGE_STATIC,
     FeatureStats,
     GraphContext,
+    check_rest_position,
     check_youngs_feature,
     dynamic_edge_features,
     dynamic_node_features,
@@ -99,8 +100,7 @@ class MeshGraphNetConfig:
         if self.acc_norm not in ("component", "vector"):
             raise ValueError(f"MeshGraphNetConfig.acc_norm must be 'component' or 'vector', got "
                              f"{self.acc_norm!r}")
-        if not isinstance(self.rest_position, bool):
-            raise ValueError(f"MeshGraphNetConfig.rest_position must be a bool, got {self.rest_position!r}")
+        check_rest_position("MeshGraphNetConfig", self.rest_position)
         check_youngs_feature("MeshGraphNetConfig", self.youngs_feature)
         for name, lo in (("hidden", 1), ("layers", 0), ("mlp_hidden_layers", 0)):
             v = getattr(self, name)

@@ -25,6 +25,7 @@ from meshodenet.features import (
     EDGE_STATIC,
     FeatureStats,
     GraphContext,
+    check_rest_position,
     check_youngs_feature,
     graph_context,
     n_node_features,
@@ -120,8 +121,7 @@ class MeshODENetConfig:
 
     def __post_init__(self):
         check_fraction("MeshODENetConfig", "release_fraction", self.release_fraction)
-        if not isinstance(self.rest_position, bool):
-            raise ValueError(f"MeshODENetConfig.rest_position must be a bool, got {self.rest_position!r}")
+        check_rest_position("MeshODENetConfig", self.rest_position)
         check_youngs_feature("MeshODENetConfig", self.youngs_feature)
         for name, lo in (("hidden", 1), ("layers", 0), ("mlp_hidden_layers", 0),
                          ("substeps", 1), ("checkpoint_every", 1), ("shooting", 0),
