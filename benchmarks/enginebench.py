@@ -32,7 +32,9 @@ generated: the cost of a fixed-step rollout does not depend on the values. All t
 ``--threads`` torch threads (default 1). ``--impl`` lists the implementations to compare
 (``reference``: the module-by-module layers, their sum at the receivers PyG's ``scatter``;
 ``handwritten``: the same with the hand-written ``index_add_`` sum;
-``fast``; ``current`` = whatever the model does by default): they are measured
+``fast``; ``current`` = whatever the model does by default; ``authors``: a stand-in for the
+authors' code, their architecture trained as they train it, ``benchmarks.authors_style``, on
+the per-graph regimes only): they are measured
 in one process, interleaved round by round, so that their ratios are not skewed by the load of
 a shared machine.
 """
@@ -51,6 +53,9 @@ import time
 GRAPHS = {"rod1": ("rod_falling", 1), "rod8": ("rod_falling", 8), "rod71": ("rod_falling", 71),
           "plate": ("plate_cantilever", 1)}
 REGIMES = ("nograd", "fwdbwd", "train")
+#: ``--impl authors``: the authors' architecture and training loop (``benchmarks.authors_style``),
+#: measured on the per-graph regimes only (not the paper epoch, surrogate or MGN sections)
+AUTHORS = "authors"
 PAPER_CASES = ("rod_falling", "plate_cantilever")
 
 
@@ -138,8 +143,16 @@ class Regime:
 
         case_id, n = GRAPHS[graph]
         frames = train_intervals + 1
-        self.model, self.data, self.source = build(case_id, n, frames, impl=impl)
+        self.model, self.data, self.source = build(
+            case_id, n, frames, impl="fast" if impl == AUTHORS else impl)
         self.regime, self.n = regime, n
+        self.authors = None
+        if impl == AUTHORS:  # the authors' architecture on the same graph and trajectories
+            from benchmarks.authors_style import AuthorsStyle
+
+            self.authors = AuthorsStyle(self.model.mesh, self.data, n, regime, train_intervals)
+            self.evals = self.authors.evals
+            return
         m = self.model
         if regime == "train":
             self.model.train()
@@ -159,6 +172,8 @@ class Regime:
     def run(self, reps: int) -> int:
         import torch
 
+        if self.authors is not None:
+            return self.authors.run(reps)
         m = self.model
         if self.regime == "nograd":
             with torch.no_grad():
@@ -349,21 +364,22 @@ def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, trai
             entry["regimes"][reg] = res
             entry["data"] = objs[impls[0]].source
         out["graphs"][g] = entry
-    if epochs:
+    ours = [i for i in impls if i != AUTHORS]
+    if epochs and ours:
         for c in PAPER_CASES:
             out["epochs"][c] = {}
-            for i in impls:
+            for i in ours:
                 r = _spawn(_epoch_child, c, i, epoch_steps, threads)
                 out["epochs"][c][i] = r
                 log(f"paper epoch {c} [{i}]: {r['epoch_s']:.1f} s (estimated from "
                     f"{r['steps_timed']} of {r['steps_per_epoch']} optimizer steps, "
                     f"{r['step_s']:.2f} s each, validation excluded); peak RSS "
                     f"{r['peak_rss_gb']:.2f} GB")
-    if solver:
+    if solver and ours:
         for c in PAPER_CASES:
             s = _spawn(_solver_child, c, solver_trajectories)
             out["surrogate"][c] = {"solver": s}
-            for i in impls:
+            for i in ours:
                 r = _surrogate(c, i, len(_case_test_youngs(c)), 2)
                 r["speedup_single"] = s["per_trajectory_s"] / r["single_s"]
                 r["speedup_batched"] = s["per_trajectory_s"] / r["batched_per_trajectory_s"]
@@ -372,8 +388,8 @@ def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, trai
                     f"(mean of {s['trajectories']}); rollout {r['single_s']:.3f} s alone "
                     f"({r['speedup_single']:.1f}x), {r['batched_per_trajectory_s']:.4f} s per "
                     f"trajectory batched by {r['batch']} ({r['speedup_batched']:.1f}x)")
-    if mgn:
-        out["mgn"] = {c: mgn_bench(c, impls, log=log) for c in PAPER_CASES}
+    if mgn and ours:
+        out["mgn"] = {c: mgn_bench(c, ours, log=log) for c in PAPER_CASES}
     out["finished"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     return out
 

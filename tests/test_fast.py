@@ -285,3 +285,24 @@ def test_pyg_scatter_reference_matches_handwritten_to_round_off():
         if hasattr(layer, "message_passing"):
             layer.message_passing = "pyg"
     check_training_step(pyg, ref, data, 3, tol={"rtol": 2e-9, "atol": 1e-12})
+
+
+@pytest.mark.parametrize("graph", ["rod1", "rod8"])
+def test_bench_authors_stand_in_counts_its_evaluations_and_trains_every_weight(graph):
+    """`--impl authors`: torchdiffeq's rk4 over ``k`` intervals calls the authors' field 4k times
+    (the evaluations the bench divides by), the loss reaches every weight, and a batch of rods
+    is one graph of ``n`` times the nodes."""
+    from benchmarks.enginebench import Regime
+
+    r = Regime(graph, "train", "authors", 3)
+    f = r.authors.f
+    calls = []
+    hook = f.register_forward_hook(lambda *a: calls.append(1))
+    assert r.run(2) == 2 * 12 and len(calls) == 24
+    hook.remove()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in f.parameters())
+    n = {"rod1": 1, "rod8": 8}[graph]
+    assert r.authors.pos.shape == (4, 21 * n, 3) and f.edge_index.shape == (2, 40 * n)
+    assert f.edge_index.max() == 21 * n - 1
+    for regime in ("nograd", "fwdbwd"):
+        assert Regime(graph, regime, "authors", 3).run(2) == 2

@@ -38,7 +38,9 @@ def register(sub):
     e.add_argument("--impl", default="current",
                    help="comma-separated implementations measured interleaved in one process: "
                    "current (the model's default), reference (PyG scatter), handwritten "
-                   "(the reference with the hand-written index_add_), fast")
+                   "(the reference with the hand-written index_add_), fast, authors (a "
+                   "stand-in for the authors' code: their architecture, torchdiffeq rk4, direct "
+                   "backprop; per-graph regimes only)")
     e.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     e.add_argument("--rounds", type=int, default=5, help="interleaved rounds per regime")
     e.add_argument("--budget", type=float, default=0.3, help="seconds per round and impl")
@@ -121,7 +123,7 @@ def run_engine(args):
 
     graphs = split(args.graphs, eb.GRAPHS, "graphs")
     regimes = split(args.regimes, eb.REGIMES, "regimes")
-    impls = split(args.impl, ("current", "reference", "handwritten", "fast"), "impl")
+    impls = split(args.impl, ("current", "reference", "handwritten", "fast", eb.AUTHORS), "impl")
     for name in ("threads", "rounds", "train_intervals", "epoch_steps", "solver_trajectories"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got "
