@@ -18,7 +18,7 @@ It exists for one comparison, the issue "A training engine near the hardware's l
 (our training rollout at least 3x theirs): the same graph, the same number of RK4 intervals and
 evaluations, interleaved round by round with our implementations in one process. The weights are
 random and the statistics placeholders: the cost of a fixed-step rollout does not depend on them.
-The field is the authors' architecture, not ours, so its numbers are not compared with ours.
+Only its cost is measured; it is never trained, and its outputs are not compared with ours.
 """
 
 from __future__ import annotations
@@ -70,9 +70,8 @@ class AuthorsField(nn.Module):
         self.decoder = _mlp(hidden + other.shape[1], 3, hidden)
         self.edge_index, self.mesh_edge_attr, self.other = edge_index, mesh_edge_attr, other
         self.clamped = clamped
-        self.stats = {k: torch.zeros(3) if k.startswith("vel") else torch.zeros(4)
-                      for k in ("vel_mean", "edge_mean")}
-        self.stats.update(vel_std=torch.ones(3), edge_std=torch.ones(4))
+        self.stats = {"vel_mean": torch.zeros(3), "vel_std": torch.ones(3),
+                      "edge_mean": torch.zeros(4), "edge_std": torch.ones(4)}
 
     def forward(self, t, state):
         x, v = state
@@ -107,8 +106,8 @@ class AuthorsStyle:
         T = train_intervals + 1
         self.pos = data.pos[:n_graphs, :T].transpose(0, 1).reshape(T, n_graphs * N, 3)
         self.vel = data.vel[:n_graphs, :T].transpose(0, 1).reshape(T, n_graphs * N, 3)
-        x0 = self.pos[0]
-        u0 = x0[ei[0]] - x0[ei[1]]
+        x_rest = torch.as_tensor(mesh.rest_pos, dtype=torch.float32).repeat(n_graphs, 1)
+        u0 = x_rest[ei[0]] - x_rest[ei[1]]
         rest = torch.cat([u0, u0.norm(dim=1, keepdim=True)], 1)
         rest = (rest - rest.mean(0)) / (rest.std(0) + 1e-8)
         node_type = torch.as_tensor(mesh.node_type, dtype=torch.long).repeat(n_graphs)
@@ -119,7 +118,7 @@ class AuthorsStyle:
         self.f = AuthorsField(ei, rest, other, (node_type == 1)[:, None])
         self.t = data.t[:T].float()
         self.dt = float(data.t[1] - data.t[0])
-        self.w = (torch.randn_like(x0), torch.randn_like(x0))
+        self.w = (torch.randn_like(x_rest), torch.randn_like(x_rest))
         self.evals = 4 * train_intervals if regime == "train" else 1
 
     def run(self, reps: int) -> int:
