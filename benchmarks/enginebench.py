@@ -143,16 +143,18 @@ class Regime:
 
         case_id, n = GRAPHS[graph]
         frames = train_intervals + 1
-        self.model, self.data, self.source = build(
-            case_id, n, frames, impl="fast" if impl == AUTHORS else impl)
         self.regime, self.n = regime, n
         self.authors = None
         if impl == AUTHORS:  # the authors' architecture on the same graph and trajectories
             from benchmarks.authors_style import AuthorsStyle
+            from meshodenet.data import Mesh, Trajectories
 
-            self.authors = AuthorsStyle(self.model.mesh, self.data, n, regime, train_intervals)
+            arrays, self.source = _arrays(case_id, n, frames)
+            self.authors = AuthorsStyle(Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays),
+                                        n, regime, train_intervals)
             self.evals = self.authors.evals
             return
+        self.model, self.data, self.source = build(case_id, n, frames, impl=impl)
         m = self.model
         if regime == "train":
             self.model.train()
