@@ -82,19 +82,29 @@ def _arrays(case_id: str, n: int, frames: int):
     return _bench_arrays(get_case(case_id), n, frames, None)
 
 
+def mesh_and_data(case_id: str, n_graphs: int, frames: int, dtype=None):
+    """``(Mesh, Trajectories, source)`` of the bench data: ``n_graphs`` trajectories of
+    ``frames`` frames (``source`` says whether generated or synthetic)."""
+    import torch
+
+    from meshodenet.data import Mesh, Trajectories
+
+    arrays, source = _arrays(case_id, n_graphs, frames)
+    return (Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays, dtype=dtype or torch.float32),
+            source)
+
+
 def build(case_id: str, n_graphs: int, frames: int, hidden: int = 128, impl: str = "current",
           dtype=None):
     """A paper-size MeshODENet (seeded random weights, statistics from the bench data), the
     bench trajectories and a field context for ``n_graphs`` of them."""
     import torch
 
-    from meshodenet.data import Mesh, Trajectories
     from meshodenet.model import MeshODENet, MeshODENetConfig
 
-    arrays, source = _arrays(case_id, n_graphs, frames)
-    data = Trajectories.from_arrays(arrays, dtype=dtype or torch.float32)
+    mesh, data, source = mesh_and_data(case_id, n_graphs, frames, dtype)
     torch.manual_seed(0)
-    model = MeshODENet(Mesh.from_arrays(arrays), MeshODENetConfig(hidden=hidden), data)
+    model = MeshODENet(mesh, MeshODENetConfig(hidden=hidden), data)
     _set_impl(model, impl)
     return model, data, source
 
@@ -147,11 +157,9 @@ class Regime:
         self.authors = None
         if impl == AUTHORS:  # the authors' architecture on the same graph and trajectories
             from benchmarks.authors_style import AuthorsStyle
-            from meshodenet.data import Mesh, Trajectories
 
-            arrays, self.source = _arrays(case_id, n, frames)
-            self.authors = AuthorsStyle(Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays),
-                                        n, regime, train_intervals)
+            mesh, data, self.source = mesh_and_data(case_id, n, frames)
+            self.authors = AuthorsStyle(mesh, data, n, regime, train_intervals)
             self.evals = self.authors.evals
             return
         self.model, self.data, self.source = build(case_id, n, frames, impl=impl)
