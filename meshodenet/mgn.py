@@ -229,16 +229,18 @@ class MeshGraphNet(TrajectoryModel):
         return graph_context(self.stats, self.topology, youngs, dtype, StepContext,
                              dt=float(self.dt))
 
-    def forward(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext,
+                gnn: fast.FastGNN | None = None) -> torch.Tensor:
         """Normalised acceleration ``(M, 3)`` from positions ``x, x_prev (M, 3)`` of frames
-        ``k`` and ``k - 1``."""
+        ``k`` and ``k - 1``. ``gnn``: a ``fast.FastGNN`` of ``ctx`` to reuse (a training loss
+        that steps several times within one backward pass builds it once)."""
         b = ctx.batch
         v = (x - x_prev) / ctx.dt * b.free
         if self.engine == "reference":
             node_in, edge_in = ctx.inputs(x, v)
             return self.gnn(node_in, edge_in, b.senders, b.receivers)
-        return self._fast_gnn(ctx)(dynamic_node_features(x, v, b, ctx.kind),
-                                   dynamic_edge_features(x, b))
+        return (gnn or self._fast_gnn(ctx))(dynamic_node_features(x, v, b, ctx.kind),
+                                            dynamic_edge_features(x, b))
 
     def _fast_gnn(self, ctx: StepContext) -> fast.FastGNN:
         """``fast.FastGNN`` of ``ctx``: the one ``rollout`` built for its context (parameters
@@ -248,9 +250,10 @@ class MeshGraphNet(TrajectoryModel):
             return held[1]
         return fast.FastGNN(self.gnn, ctx)
 
-    def step(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext) -> torch.Tensor:
+    def step(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext,
+             gnn: fast.FastGNN | None = None) -> torch.Tensor:
         """Positions of frame ``k + 1``: ``2 x - x_prev + a dt^2``, clamped nodes held."""
-        a = self(x, x_prev, ctx) * ctx.acc_std + ctx.acc_mean
+        a = self(x, x_prev, ctx, gnn) * ctx.acc_std + ctx.acc_mean
         x_next = 2 * x - x_prev + a * ctx.dt ** 2
         return torch.where(ctx.batch.free.bool(), x_next, x)
 
@@ -321,7 +324,7 @@ class MeshGraphNet(TrajectoryModel):
         self._check_dt(data.t, "data t")
         out = data.pos.clone()
         n = data.n_frames - 1
-        samples = torch.arange(self.n_training_samples(data))
+        samples = torch.arange(len(data) * n)
         for s in range(0, len(samples), batch_size):
             idx = samples[s:s + batch_size]
             traj, x_prev, x, _ = self._frames(data, idx)
@@ -344,6 +347,16 @@ class MeshGraphNet(TrajectoryModel):
         x_prev = torch.where((k == 0)[:, None, None], first, data.pos[traj, (k - 1).clamp(min=0)])
         return traj, x_prev, x, x_next
 
+    def _add_noise(self, x, x_next, mask, generator):
+        """``x + n, x_next + (1 - noise_gamma) n``: the training noise (module doc) on the
+        positions ``x (S, N, 3)`` where ``mask`` (broadcast to ``x``) is 1."""
+        c = self.config
+        if c.noise <= 0:
+            return x, x_next
+        g = torch.randn(x.shape, generator=generator, dtype=x.dtype).to(x.device)
+        n = g * (c.noise * float(self.step_rms)) * mask
+        return x + n, x_next + (1 - c.noise_gamma) * n
+
     def training_loss(self, data, samples, generator=None):
         """Squared error of the normalised acceleration (free nodes, active components),
         summed over components and averaged over free nodes of the samples (module doc)."""
@@ -352,11 +365,7 @@ class MeshGraphNet(TrajectoryModel):
         ctx = self.context(data.youngs[traj], x.dtype)
         free = ctx.batch.free.reshape(len(traj), -1, 1)
         active = self.active.to(x.dtype)
-        c = self.config
-        if c.noise > 0:
-            g = torch.randn(x.shape, generator=generator, dtype=x.dtype).to(x.device)
-            n = g * (c.noise * float(self.step_rms)) * free * active
-            x, x_next = x + n, x_next + (1 - c.noise_gamma) * n
+        x, x_next = self._add_noise(x, x_next, free * active, generator)
         target = (x_next - 2 * x + x_prev).reshape(-1, 3) / ctx.dt ** 2
         std = torch.where(active > 0, ctx.acc_std, torch.ones_like(ctx.acc_std))
         target = (target - ctx.acc_mean) / std

@@ -16,6 +16,7 @@ from meshodenet.integrators import INTEGRATORS
 from meshodenet.mgn import MeshGraphNet, MeshGraphNetConfig, mgn_presets
 from meshodenet.model import MeshODENet, MeshODENetConfig
 from meshodenet.presets import meshodenet_presets
+from meshodenet.unrolled import UnrolledMGN, UnrolledMGNConfig, unrolled_mgn_presets
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,9 @@ MODELS: dict = {
                                  "MeshODENet's GNN with the case's linear drag implicit: "
                                  "semi-implicit Euler, one evaluation per interval "
                                  "(docs/TRAINING.md)"),
+    "mgn_unrolled": ModelSpec(UnrolledMGN, UnrolledMGNConfig, unrolled_mgn_presets,
+                              "MeshGraphNet trained through short rollouts of its own "
+                              "(docs/TRAINING.md)"),
 }
 
 __all__ = ["MODELS", "INTEGRATORS", "ModelSpec", "get_model_spec", "register_model",

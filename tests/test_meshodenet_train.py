@@ -167,20 +167,6 @@ def test_quick_plate_presets_train_without_weight_decay_and_rods_keep_it():
 
 # --- end to end through the CLI on a tiny generated case ----------------------------------
 
-@pytest.fixture(scope="module")
-def tiny_case(tmp_path_factory):
-    from benchmarks.generate import generate
-    from benchmarks.registry import CASES, register_case
-    from groundtruth.cases import RodCase
-
-    case = dataclasses.replace(RodCase(), id="rod_tiny_test", n_train=4, n_test=2, t_end=0.5)
-    register_case(case, overwrite=True)
-    root = tmp_path_factory.mktemp("data")
-    generate(case, root, workers=1, progress=False)
-    yield case, root
-    CASES.pop(case.id, None)
-
-
 def _cli(*argv):
     from benchmarks.cli import main
 

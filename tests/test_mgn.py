@@ -51,7 +51,7 @@ class Replay:
     def __init__(self, outputs):
         self.outputs, self.calls = list(outputs), []
 
-    def __call__(self, x, x_prev, ctx):
+    def __call__(self, x, x_prev, ctx, gnn=None):
         self.calls.append((x.detach().clone(), x_prev.detach().clone()))
         return self.outputs.pop(0)
 
@@ -297,28 +297,25 @@ def test_registry_builds_and_reloads_mgn(tmp_path):
     torch.testing.assert_close(loaded.rollout_all(data)[0], a, rtol=0, atol=0)
 
 
-def test_cli_train_and_rollout_mgn(tmp_path, capsys):
+@pytest.mark.parametrize("model_id", ["mgn", "mgn_unrolled"])
+def test_cli_train_reload_and_rollout(model_id, tiny_case, tmp_path, capsys):
     from benchmarks.cli import main
-    from benchmarks.generate import generate
-    from benchmarks.registry import CASES, register_case
-    from groundtruth.cases import RodCase
+    from meshodenet.registry import load_model
 
-    case = dataclasses.replace(RodCase(), id="rod_tiny_mgn_test", n_train=4, n_test=2,
-                               t_end=0.5)
-    register_case(case, overwrite=True)
-    try:
-        root = tmp_path / "data"
-        generate(case, root, workers=1, progress=False)
-        run = tmp_path / "run"
-        assert main(["train", "--case", case.id, "--model", "mgn", "--preset", "smoke",
-                     "--out", str(run), "--data-dir", str(root), "--threads", "1",
-                     "--no-progress"]) == 0
-        capsys.readouterr()
-        config = json.loads((run / "config.json").read_text())
-        assert config["model"] == "mgn" and config["model_config"]["layers"] == 2
-        metrics = json.loads((run / "test_metrics.json").read_text())
-        assert metrics["model"] == "mgn" and math.isfinite(metrics["rmse_m"])
-        assert main(["rollout", "--run", str(run), "--out", str(tmp_path / "p.npz"),
-                     "--data-dir", str(root), "--device", "cpu"]) == 0
-    finally:
-        CASES.pop(case.id, None)
+    case, root = tiny_case
+    run = tmp_path / "run"
+    assert main(["train", "--case", case.id, "--model", model_id, "--preset", "smoke",
+                 "--out", str(run), "--data-dir", str(root), "--threads", "1",
+                 "--no-progress"]) == 0
+    capsys.readouterr()
+    config = json.loads((run / "config.json").read_text())
+    assert config["model"] == model_id and config["model_config"]["layers"] == 2
+    metrics = json.loads((run / "test_metrics.json").read_text())
+    assert metrics["model"] == model_id and math.isfinite(metrics["rmse_m"])
+    model, _ = load_model(run / "best.pt")
+    assert model.name == model_id
+    if model_id == "mgn_unrolled":  # smoke: one one-step epoch, one of 3-step windows
+        assert config["model_config"]["unroll"] == model.config.unroll == 3
+        assert len((run / "history.csv").read_text().splitlines()) == 3
+    assert main(["rollout", "--run", str(run), "--out", str(tmp_path / "p.npz"),
+                 "--data-dir", str(root), "--device", "cpu"]) == 0
