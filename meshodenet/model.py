@@ -100,6 +100,13 @@ class MeshODENetConfig:
       ``n_intervals / S``). ``p n`` windows of a batch of ``n``, rounded up or down at random
       with the trainer's generator (drawn only when ``p n`` is not an integer); 0 (default)
       draws nothing and changes nothing.
+    - ``frame_weight``: the exponent ``p`` in [0, 1] of the loss's weight per frame of a
+      training window (not in the paper): frame ``d`` intervals after the window's start
+      weighs ``s_d^-p``, ``s_d`` the mean square displacement of the nodes ``d`` intervals
+      after a window's start on the training split (the loss of standing still at that
+      frame). 0 (default, the paper) weighs every frame the same, so the late frames' large
+      errors dominate; 1 weighs each frame's error relative to standing still at it; the
+      loss of standing still is 1 for every ``p`` (``MeshODENet.training_loss``).
     """
 
     hidden: int = 128
@@ -118,9 +125,11 @@ class MeshODENetConfig:
     youngs_feature: str = "linear"
     rest_position: bool = False
     release_fraction: float = 0.0
+    frame_weight: float = 0.0
 
     def __post_init__(self):
         check_fraction("MeshODENetConfig", "release_fraction", self.release_fraction)
+        check_fraction("MeshODENetConfig", "frame_weight", self.frame_weight)
         check_rest_position("MeshODENetConfig", self.rest_position)
         check_youngs_feature("MeshODENetConfig", self.youngs_feature)
         for name, lo in (("hidden", 1), ("layers", 0), ("mlp_hidden_layers", 0),
@@ -262,9 +271,25 @@ class MeshODENet(TrajectoryModel):
             self._loss_scales[key] = total / S if total > 0 else 1.0
         return self._loss_scales[key]
 
+    @torch.no_grad()
+    def _frame_scales(self, train: Trajectories, S: int) -> torch.Tensor:
+        """``s_d (S,)`` float64, ``d = 1..S``: the mean of ``|x(t_s + d) - x(t_s)|^2`` over
+        trajectories, every start ``s`` of a window of ``S`` intervals, and nodes (cached per
+        horizon; a frame that never moves counts as 1e-30 m^2)."""
+        key = ("frames", S, train.pos.data_ptr(), tuple(train.pos.shape))
+        if key not in self._loss_scales:
+            n_start = train.n_frames - S
+            self._loss_scales[key] = torch.stack([
+                ((train.pos[:, d:d + n_start] - train.pos[:, :n_start]).double() ** 2)
+                .sum(-1).mean() for d in range(1, S + 1)]).clamp_min(1e-30)
+        return self._loss_scales[key]
+
     def training_loss(self, data, samples, generator=None):
         """Mean over windows, predicted frames and nodes of ``|x_pred - x_true|^2``, divided by
         the same mean for the no-motion prediction on the training split (``_loss_scale``).
+        With ``frame_weight = p > 0``: the mean over the window's frames ``d`` of their mean
+        square error times ``s_d^-p`` (``_frame_scales``), divided by the mean of
+        ``s_d^(1-p)``, its value for standing still.
 
         This is the paper's loss (its eq. for ``L(theta)``: squared position error summed over
         nodes, averaged over samples and frames) divided by a constant, so that standing still
@@ -292,5 +317,10 @@ class MeshODENet(TrajectoryModel):
         t = data.t[: S + 1] - data.t[0]
         pred, _ = self.rollout(data.pos[traj, start], data.vel[traj, start],
                                data.youngs[traj], t)  # (n, S+1, N, 3)
-        err = ((pred[:, 1:] - data.pos[traj[:, None], frames[:, 1:]]) ** 2).sum(-1).mean()
-        return err / self._loss_scale(data, S)
+        sq = ((pred[:, 1:] - data.pos[traj[:, None], frames[:, 1:]]) ** 2).sum(-1)
+        p = self.config.frame_weight
+        if not p:
+            return sq.mean() / self._loss_scale(data, S)
+        s_d = self._frame_scales(data, S)
+        w = s_d.pow(-p)
+        return (sq.mean(dim=(0, 2)) * w.to(sq.dtype)).mean() / float((s_d * w).mean())

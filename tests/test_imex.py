@@ -10,7 +10,7 @@ from meshodenet import reference
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import FeatureStats
 from meshodenet.imex import ImexConfig, MeshODENetIMEX
-from meshodenet.model import MeshODENetConfig
+from meshodenet.model import MeshODENet, MeshODENetConfig
 from meshodenet.registry import get_model_spec, load_model
 from tests.conftest import rod_arrays, strip_arrays
 
@@ -227,16 +227,44 @@ def test_release_fraction_is_checked_and_old_runs_read_as_the_default():
     from meshodenet.imex import imex_presets
 
     for cls in (ImexConfig, MeshODENetConfig):
-        for bad in (1.5, -0.1, float("nan"), True, "0.5"):
-            with pytest.raises(ValueError, match=rf"{cls.__name__}\.release_fraction .*{bad!r}"):
-                cls(release_fraction=bad)
+        for name in ("release_fraction", "frame_weight"):
+            for bad in (1.5, -0.1, float("nan"), True, "0.5"):
+                with pytest.raises(ValueError, match=rf"{cls.__name__}\.{name} .*{bad!r}"):
+                    cls(**{name: bad})
     tc, mc = imex_presets("quick", "triangle")
     with pytest.raises(ValueError, match=r"release_fraction .*2\.0"):
         apply_overrides(tc, mc, ["model.release_fraction=2"])
     # the plate's quick preset oversamples the release, the rod's and MeshODENet's do not
     assert mc.release_fraction == 0.05 and imex_presets("quick", "line")[1].release_fraction == 0
     assert get_model_spec("meshodenet").presets("quick", "triangle")[1].release_fraction == 0
+    # only the rod's IMEX quick preset weighs frames (docs/TRAINING.md); the paper's loss: none
+    assert imex_presets("quick", "line")[1].frame_weight == 0.5
+    assert [imex_presets(p, k)[1].frame_weight for p in ("paper", "smoke")
+            for k in ("line", "triangle")] + [mc.frame_weight] == [0.0] * 5
+    assert all(get_model_spec("meshodenet").presets(p, k)[1].frame_weight == 0
+               for p in ("paper", "quick", "smoke") for k in ("line", "triangle"))
     stored = {"model": "meshodenet_imex", "model_config": {"hidden": 32}, "train": {}}
     assert with_defaults(stored)["model_config"]["release_fraction"] == 0.0
+    assert with_defaults(stored)["model_config"]["frame_weight"] == 0.0
     stored["model"] = "meshodenet"
     assert with_defaults(stored)["model_config"]["release_fraction"] == 0.0
+    assert with_defaults(stored)["model_config"]["frame_weight"] == 0.0
+
+
+@pytest.mark.parametrize("p", [0.0, 0.5, 1.0])
+def test_frame_weight_loss_is_relative_to_standing_still(p):
+    """Whole rollouts of every trajectory: standing still scores 1 for every exponent, and an
+    error ``e`` at frame 1 alone costs ``|e|^2 s_1^-p / (S mean_d s_d^(1-p))``."""
+    for cls, cfg in ((MeshODENetIMEX, ImexConfig), (MeshODENet, MeshODENetConfig)):
+        arrays = rod_arrays(B=3, T=6)
+        mesh, tr = Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays, torch.float64)
+        model = cls(mesh, cfg(hidden=8, mlp_hidden_layers=1, frame_weight=p), tr).double()
+        S, idx = tr.n_frames - 1, torch.arange(len(tr))
+        model.rollout = lambda x0, v0, youngs, t: (x0[:, None].expand(-1, len(t), -1, -1), None)
+        assert float(model.training_loss(tr, idx)) == pytest.approx(1.0, rel=1e-12)
+        s_d = ((tr.pos[:, 1:] - tr.pos[:, :1]) ** 2).sum(-1).mean(dim=(0, 2))
+        e = torch.zeros_like(tr.pos)
+        e[0, 1, 2] = torch.tensor([3e-3, -4e-3, 0.0], dtype=torch.float64)  # |e|^2 = 2.5e-5
+        model.rollout = lambda x0, v0, youngs, t, pred=tr.pos + e: (pred, None)
+        want = 2.5e-5 / (len(tr) * mesh.n_nodes) * s_d[0] ** -p / (S * (s_d ** (1 - p)).mean())
+        assert float(model.training_loss(tr, idx)) == pytest.approx(float(want), rel=1e-12)
