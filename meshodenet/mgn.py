@@ -239,8 +239,9 @@ class MeshGraphNet(TrajectoryModel):
         if self.engine == "reference":
             node_in, edge_in = ctx.inputs(x, v)
             return self.gnn(node_in, edge_in, b.senders, b.receivers)
-        return (gnn or self._fast_gnn(ctx))(dynamic_node_features(x, v, b, ctx.kind),
-                                            dynamic_edge_features(x, b))
+        if gnn is None:
+            gnn = self._fast_gnn(ctx)
+        return gnn(dynamic_node_features(x, v, b, ctx.kind), dynamic_edge_features(x, b))
 
     def _fast_gnn(self, ctx: StepContext) -> fast.FastGNN:
         """``fast.FastGNN`` of ``ctx``: the one ``rollout`` built for its context (parameters

@@ -186,7 +186,7 @@ class MeshODENet(TrajectoryModel):
         self.kind = mesh.kind
         self.stats = FeatureStats(self.kind, config.youngs_feature, config.rest_position)
         self.epoch = 0
-        self._loss_scales: dict = {}  # horizon -> no-motion loss on the training split
+        self._loss_scales: dict = {}  # no-motion loss (and per-frame scales) per horizon
         if train is not None:
             self.stats.compute(self.topology, train)
         self.gnn = EncodeProcessDecode(

@@ -56,7 +56,7 @@ MODELS: dict = {
                                  "(docs/TRAINING.md)"),
     "mgn_unrolled": ModelSpec(UnrolledMGN, UnrolledMGNConfig, unrolled_mgn_presets,
                               "MeshGraphNet trained through short rollouts of its own "
-                              "(docs/TRAINING.md)"),
+                              "(docs/MGN.md)"),
 }
 
 __all__ = ["MODELS", "INTEGRATORS", "ModelSpec", "get_model_spec", "register_model",
