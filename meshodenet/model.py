@@ -186,7 +186,7 @@ class MeshODENet(TrajectoryModel):
         self.kind = mesh.kind
         self.stats = FeatureStats(self.kind, config.youngs_feature, config.rest_position)
         self.epoch = 0
-        self._loss_scales: dict = {}  # no-motion loss (and per-frame scales) per horizon
+        self._loss_scales: dict = {}  # horizon -> no-motion loss per frame (_frame_scales)
         if train is not None:
             self.stats.compute(self.topology, train)
         self.gnn = EncodeProcessDecode(
@@ -256,32 +256,26 @@ class MeshODENet(TrajectoryModel):
         n_int = data.n_frames - 1
         return len(data) * (n_int // self.horizon(n_int))
 
-    @torch.no_grad()
     def _loss_scale(self, train: Trajectories, S: int) -> float:
-        """Mean of ``|x(t_s + d) - x(t_s)|^2`` over trajectories, every start ``s`` of a window
-        of ``S`` intervals, ``d = 1..S`` and nodes: the loss of the prediction "nothing moves"
-        (cached per horizon; ``train`` is the training split the trainer passes)."""
-        key = (S, train.pos.data_ptr(), tuple(train.pos.shape))
-        if key not in self._loss_scales:
-            n_start = train.n_frames - S
-            total = 0.0
-            for d in range(1, S + 1):
-                diff = train.pos[:, d:d + n_start] - train.pos[:, :n_start]
-                total += float((diff.double() ** 2).sum(-1).mean())
-            self._loss_scales[key] = total / S if total > 0 else 1.0
-        return self._loss_scales[key]
+        """The mean of ``_frame_scales`` over the window's frames: the loss of the prediction
+        "nothing moves" (1 where nothing moves)."""
+        total = 0.0  # summed in order, not with sum(): Python 3.12's sum() rounds differently
+        for s_d in self._frame_scales(train, S).tolist():
+            total += s_d
+        return total / S if total > 0 else 1.0
 
     @torch.no_grad()
     def _frame_scales(self, train: Trajectories, S: int) -> torch.Tensor:
         """``s_d (S,)`` float64, ``d = 1..S``: the mean of ``|x(t_s + d) - x(t_s)|^2`` over
-        trajectories, every start ``s`` of a window of ``S`` intervals, and nodes (cached per
-        horizon; a frame that never moves counts as 1e-30 m^2)."""
-        key = ("frames", S, train.pos.data_ptr(), tuple(train.pos.shape))
+        trajectories, every start ``s`` of a window of ``S`` intervals, and nodes: the loss of
+        standing still at frame ``d`` of a window (cached per horizon; ``train`` is the
+        training split the trainer passes)."""
+        key = (S, train.pos.data_ptr(), tuple(train.pos.shape))
         if key not in self._loss_scales:
             n_start = train.n_frames - S
-            self._loss_scales[key] = torch.stack([
-                ((train.pos[:, d:d + n_start] - train.pos[:, :n_start]).double() ** 2)
-                .sum(-1).mean() for d in range(1, S + 1)]).clamp_min(1e-30)
+            self._loss_scales[key] = torch.tensor([
+                float(((train.pos[:, d:d + n_start] - train.pos[:, :n_start]).double() ** 2)
+                      .sum(-1).mean()) for d in range(1, S + 1)], dtype=torch.float64)
         return self._loss_scales[key]
 
     def training_loss(self, data, samples, generator=None):
@@ -321,6 +315,6 @@ class MeshODENet(TrajectoryModel):
         p = self.config.frame_weight
         if not p:
             return sq.mean() / self._loss_scale(data, S)
-        s_d = self._frame_scales(data, S)
+        s_d = self._frame_scales(data, S).clamp_min(1e-30)  # a frame that never moves
         w = s_d.pow(-p)
         return (sq.mean(dim=(0, 2)) * w.to(sq.dtype)).mean() / float((s_d * w).mean())
