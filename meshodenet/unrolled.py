@@ -114,20 +114,18 @@ class UnrolledMGN(MeshGraphNet):
         return total / (K * n_free)
 
 
-# ``quick``: MeshGraphNet's ``quick`` epochs at lr 1e-3 one-step, its last stretch at 1e-4 on
-# windows of 8 steps (docs/TRAINING.md, "MeshGraphNet through its own rollouts").
-QUICK_ONE_STEP_EPOCHS = {"line": 14, "triangle": 5}
-
-
 def unrolled_mgn_presets(preset: str, kind: str) -> tuple:
     """``(TrainConfig, UnrolledMGNConfig)`` of ``preset``: MeshGraphNet's (``mgn_presets``)
     with windows of ``unroll = 8`` steps; ``quick`` trains one-step until MeshGraphNet's
-    learning-rate milestone (``QUICK_ONE_STEP_EPOCHS``) and on windows after it, ``paper``
-    on windows throughout; ``smoke`` unrolls 3 steps after one one-step epoch."""
+    learning-rate milestone and on windows after it (docs/MGN.md, "MeshGraphNet through its
+    own rollouts"), ``paper`` on windows throughout; ``smoke`` unrolls 3 steps after one one-step epoch."""
     check_preset(preset)
     train, cfg = mgn_presets(preset, kind)
-    extra = {"quick": dict(one_step_epochs=QUICK_ONE_STEP_EPOCHS[kind]),
-             "smoke": dict(unroll=3, one_step_epochs=1)}.get(preset, {})
+    extra = {}
+    if preset == "quick":
+        extra = dict(one_step_epochs=train.lr_milestones[0])
+    elif preset == "smoke":
+        extra = dict(unroll=3, one_step_epochs=1)
     return train, UnrolledMGNConfig(**{**dataclasses.asdict(cfg), **extra})
 
 
