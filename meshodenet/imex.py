@@ -41,13 +41,13 @@ from torch.utils.checkpoint import checkpoint
 
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import _Moments
-from meshodenet.model import MeshODENet, MeshODENetConfig, check_fraction
+from meshodenet.model import MeshODENet, MeshODENetConfig, check_fraction, check_nonnegative
 from meshodenet.presets import check_preset, meshodenet_presets
 
 #: the fields ``ImexConfig`` shares with ``MeshODENetConfig`` (same meaning)
 SHARED_FIELDS = ("hidden", "layers", "mlp_hidden_layers", "activation", "shooting",
                  "shooting_epochs", "youngs_feature", "rest_position", "release_fraction",
-                 "frame_weight")
+                 "frame_weight", "release_weight")
 
 
 @dataclass(frozen=True)
@@ -55,7 +55,7 @@ class ImexConfig:
     """Architecture and training horizon of MeshODENet-IMEX (meanings as ``MeshODENetConfig``):
     ``hidden``, ``layers``, ``mlp_hidden_layers``, ``activation``, ``shooting``,
     ``shooting_epochs``, ``youngs_feature``, ``rest_position``, ``release_fraction``,
-    ``frame_weight`` (``SHARED_FIELDS``);
+    ``frame_weight``, ``release_weight`` (``SHARED_FIELDS``);
     ``checkpoint_every`` steps per recomputed segment in the backward pass (0: keep the whole
     graph; the same gradient either way)."""
 
@@ -70,10 +70,12 @@ class ImexConfig:
     rest_position: bool = False
     release_fraction: float = 0.0
     frame_weight: float = 0.0
+    release_weight: float = 0.0
 
     def __post_init__(self):
         for name in ("release_fraction", "frame_weight"):
             check_fraction("ImexConfig", name, getattr(self, name))
+        check_nonnegative("ImexConfig", "release_weight", self.release_weight)
         # MeshODENetConfig checks the shared fields (names, types, ranges)
         self.base()
         v = self.checkpoint_every
@@ -165,10 +167,12 @@ class MeshODENetIMEX(MeshODENet):
 #: ``quick`` changes from MeshODENet's ``quick`` (validation experiments in docs/TRAINING.md):
 #: the logarithm of the modulus as feature; rods: twice the epochs (a quarter of the field
 #: evaluations per optimizer step), the learning rate divided by 10 for the last 8, frames
-#: weighted by the inverse square root of their no-motion error (``frame_weight``); plates:
+#: weighted by the inverse square root of their no-motion error (``frame_weight``) and the
+#: first step after the release weighted apart (``release_weight``); plates:
 #: 5 % of the training windows start at the release (``release_fraction``).
 QUICK_CHANGES = {
-    "line": (dict(epochs=20, lr_milestones=(12,)), dict(youngs_feature="log", frame_weight=0.5)),
+    "line": (dict(epochs=20, lr_milestones=(12,)),
+             dict(youngs_feature="log", frame_weight=0.5, release_weight=0.05)),
     "triangle": (dict(), dict(youngs_feature="log", release_fraction=0.05)),
 }
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -249,6 +251,74 @@ def test_release_fraction_is_checked_and_old_runs_read_as_the_default():
     stored["model"] = "meshodenet"
     assert with_defaults(stored)["model_config"]["release_fraction"] == 0.0
     assert with_defaults(stored)["model_config"]["frame_weight"] == 0.0
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.1, 2.0])
+def test_release_weight_adds_the_first_step_relative_to_standing_still(lam):
+    """Whole rollouts of every trajectory: standing still scores ``1 + lambda``. Windows: the
+    release step starts from frame 0 of each sample's trajectory whatever the window, and adds
+    ``lambda`` times its mean square error over ``s_rel`` to the trajectory loss."""
+    for cls, cfg in ((MeshODENetIMEX, ImexConfig), (MeshODENet, MeshODENetConfig)):
+        arrays = rod_arrays(B=3, T=6)
+        mesh, tr = Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays, torch.float64)
+        model = cls(mesh, cfg(hidden=8, mlp_hidden_layers=1, release_weight=lam), tr).double()
+        calls = []
+
+        def still(x0, v0, youngs, t, calls=calls):
+            calls.append((x0.clone(), len(t)))
+            return x0[:, None].expand(-1, len(t), -1, -1), None
+
+        model.rollout = still
+        assert float(model.training_loss(tr, torch.arange(3))) == \
+            pytest.approx(1.0 + lam, rel=1e-12)
+        assert len(calls) == 1 + bool(lam)
+        # windows of 2 intervals (2 per trajectory): samples 0-3 are trajectories 0, 0, 1, 1
+        model.config = replace(model.config, shooting=2)
+        idx, frame0 = torch.arange(4), tr.pos[torch.tensor([0, 0, 1, 1]), 0]
+        e = torch.tensor([3e-3, -4e-3, 0.0], dtype=torch.float64)  # |e|^2 = 2.5e-5
+
+        def wrong_release(x0, v0, youngs, t, calls=calls, e=e):
+            calls.append((x0.clone(), len(t)))
+            out = x0[:, None].expand(-1, len(t), -1, -1).clone()
+            if len(t) == 2:  # the release step (windows here have 3 frames)
+                out[0, 1, 2] += e
+            return out, None
+
+        model.rollout = wrong_release
+        got = float(model.training_loss(tr, idx, torch.Generator().manual_seed(0)))
+        if lam:
+            x0, n_t = calls[-1]
+            assert n_t == 2 and torch.equal(x0, frame0)
+        model.config = replace(model.config, release_weight=0.0)
+        base = float(model.training_loss(tr, idx, torch.Generator().manual_seed(0)))
+        s_rel = float(((tr.pos[:, 1] - tr.pos[:, 0]) ** 2).sum(-1).mean())
+        sq = ((tr.pos[torch.tensor([0, 0, 1, 1]), 1] - frame0) ** 2).sum(-1)
+        sq[0, 2] = ((tr.pos[0, 1, 2] - tr.pos[0, 0, 2] - e) ** 2).sum()
+        assert got - base == pytest.approx(lam * float(sq.mean()) / s_rel, rel=1e-9, abs=1e-15)
+
+
+def test_release_weight_is_checked_and_old_runs_read_as_the_default():
+    from benchmarks.runs import apply_overrides, with_defaults
+    from meshodenet.imex import imex_presets
+
+    for cls in (ImexConfig, MeshODENetConfig):
+        for bad in (-0.1, float("nan"), float("inf"), True, "0.5"):
+            with pytest.raises(ValueError, match=rf"{cls.__name__}\.release_weight .*{bad!r}"):
+                cls(release_weight=bad)
+        assert cls(release_weight=3).release_weight == 3
+    tc, mc = imex_presets("quick", "line")
+    with pytest.raises(ValueError, match=r"release_weight .*-1\.0"):
+        apply_overrides(tc, mc, ["model.release_weight=-1"])
+    # only the rod's IMEX quick preset weighs the release (docs/TRAINING.md)
+    assert mc.release_weight == 0.05
+    assert imex_presets("quick", "triangle")[1].release_weight == 0
+    assert all(imex_presets(p, k)[1].release_weight == 0
+               for p in ("paper", "smoke") for k in ("line", "triangle"))
+    assert all(get_model_spec("meshodenet").presets(p, k)[1].release_weight == 0
+               for p in ("paper", "quick", "smoke") for k in ("line", "triangle"))
+    for model in ("meshodenet_imex", "meshodenet"):
+        stored = {"model": model, "model_config": {"hidden": 32}, "train": {}}
+        assert with_defaults(stored)["model_config"]["release_weight"] == 0.0
 
 
 @pytest.mark.parametrize("p", [0.0, 0.5, 1.0])
