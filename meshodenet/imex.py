@@ -167,15 +167,15 @@ class MeshODENetIMEX(MeshODENet):
 #: ``quick`` changes from MeshODENet's ``quick`` (validation experiments in docs/TRAINING.md):
 #: the logarithm of the modulus as feature; rods: twice the epochs (a quarter of the field
 #: evaluations per optimizer step), the learning rate divided by 10 for the last 8, frames
-#: weighted by the inverse square root of their no-motion error (``frame_weight``), the
-#: first step after the release weighted apart (``release_weight``) and the nodes' rest
-#: coordinates as features (``rest_position``); plates:
-#: 5 % of the training windows start at the release (``release_fraction``).
+#: weighted by the inverse square root of their no-motion error (``frame_weight``) and the
+#: first step after the release weighted apart (``release_weight``); plates: 5 % of the
+#: training windows start at the release (``release_fraction``); both: the nodes' rest
+#: coordinates as features (``rest_position``).
 QUICK_CHANGES = {
     "line": (dict(epochs=20, lr_milestones=(12,)),
              dict(youngs_feature="log", frame_weight=0.5, release_weight=0.05,
                   rest_position=True)),
-    "triangle": (dict(), dict(youngs_feature="log", release_fraction=0.05)),
+    "triangle": (dict(), dict(youngs_feature="log", release_fraction=0.05, rest_position=True)),
 }
 
 

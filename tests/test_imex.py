@@ -311,7 +311,9 @@ def test_release_weight_is_checked_and_old_runs_read_as_the_default():
         apply_overrides(tc, mc, ["model.release_weight=-1"])
     # only the rod's IMEX quick preset weighs the release (docs/TRAINING.md)
     assert mc.release_weight == 0.05 and mc.rest_position
-    assert not imex_presets("quick", "triangle")[1].rest_position
+    assert imex_presets("quick", "triangle")[1].rest_position
+    assert not any(imex_presets(p, k)[1].rest_position
+                   for p in ("paper", "smoke") for k in ("line", "triangle"))
     assert imex_presets("quick", "triangle")[1].release_weight == 0
     assert all(imex_presets(p, k)[1].release_weight == 0
                for p in ("paper", "smoke") for k in ("line", "triangle"))
