@@ -381,7 +381,7 @@ QUICK_MGN = {
              dict(hidden=64, layers=15, acc_norm="vector", noise=0.03, youngs_feature="log")),
     "triangle": (dict(epochs=6, lr=1e-3, lr_milestones=(5,), batch_size=32, max_batches=48,
                       weight_decay=0.0),
-                 dict(hidden=32, layers=30)),
+                 dict(hidden=32, layers=30, rest_position=True)),
 }
 
 # --- presets ------------------------------------------------------------------------------------

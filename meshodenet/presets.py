@@ -39,7 +39,7 @@ QUICK = {
              dict(hidden=64, shooting=10, shooting_epochs=1)),
     "triangle": (dict(epochs=24, lr=1e-3, lr_milestones=(18,), batch_size=4, grad_clip=1.0,
                       max_batches=24, weight_decay=0.0),
-                 dict(hidden=32, shooting=16, shooting_epochs=0)),
+                 dict(hidden=32, shooting=16, shooting_epochs=0, rest_position=True)),
 }
 
 
