@@ -378,7 +378,8 @@ class MeshGraphNet(TrajectoryModel):
 # ``quick``: reasoning in ``mgn_presets`` and docs/MGN.md.
 QUICK_MGN = {
     "line": (dict(epochs=20, lr=1e-3, lr_milestones=(14,), batch_size=32, max_batches=120),
-             dict(hidden=64, layers=15, acc_norm="vector", noise=0.03, youngs_feature="log")),
+             dict(hidden=64, layers=15, acc_norm="vector", noise=0.03, youngs_feature="log",
+                  rest_position=True)),
     "triangle": (dict(epochs=6, lr=1e-3, lr_milestones=(5,), batch_size=32, max_batches=48,
                       weight_decay=0.0),
                  dict(hidden=32, layers=30, rest_position=True)),

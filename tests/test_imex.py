@@ -313,11 +313,11 @@ def test_release_weight_is_checked_and_old_runs_read_as_the_default():
     assert mc.release_weight == 0.05 and mc.rest_position
     assert imex_presets("quick", "triangle")[1].rest_position
     # plates: every model's quick preset has the rest coordinates (docs/TRAINING.md); rods:
-    # only IMEX's
+    # IMEX's and MGN's
     for m in ("meshodenet", "mgn", "mgn_unrolled", "meshodenet_imex"):
         spec = get_model_spec(m)
         assert spec.presets("quick", "triangle")[1].rest_position
-        assert spec.presets("quick", "line")[1].rest_position == (m == "meshodenet_imex")
+        assert spec.presets("quick", "line")[1].rest_position == (m != "meshodenet")
     assert not any(imex_presets(p, k)[1].rest_position
                    for p in ("paper", "smoke") for k in ("line", "triangle"))
     assert imex_presets("quick", "triangle")[1].release_weight == 0
