@@ -65,7 +65,9 @@ def meshodenet_presets(preset: str, kind: str) -> tuple[TrainConfig, MeshODENetC
       per epoch, 6 epochs, weight decay 5e-4) stayed above standing still (0.206 m): the
       paper's coupled weight decay held the model at almost no acceleration, and growing the
       windows at lr 1e-3 made its rollouts diverge. Reasoning and every experiment:
-      docs/TRAINING.md, "The in-plane plate".
+      docs/TRAINING.md, "The in-plane plate". Plates also feed the nodes' rest coordinates
+      (``rest_position``; seed 0, validation: 116 -> 70 mm; docs/TRAINING.md, "Rest
+      coordinates for every model").
     - ``smoke``: a tiny model, 2 epochs, for tests.
     """
     check_preset(preset)
