@@ -1,1 +1,2 @@
-"""meshbench glue: registries, data generation, the runner and the command-line interface."""
+"""meshbench glue: the command-line interface (``cli``, ``commands``), the suite (``suite``),
+ground-truth validation (``validation``) and the engine benchmark (``engine``)."""

@@ -50,12 +50,12 @@ def _interrupt_message(args, argv, e: BaseException) -> str:
 
 
 def main(argv=None) -> int:
-    from benchmarks import procs
+    from benchmarks.suite import procs
 
     procs.apply_repro_env()  # before numpy / torch load their kernels (see procs.REPRO_ENV)
-    from benchmarks import plugins
-    from benchmarks.procs import LockBusy
-    from benchmarks.registry import RegistryError
+    from benchmarks.suite import plugins
+    from benchmarks.suite.procs import LockBusy
+    from benchmarks.suite.registry import RegistryError
     from groundtruth.implicit import ConvergenceError
     from groundtruth.store import StoreError
 

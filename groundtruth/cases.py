@@ -3,7 +3,7 @@
 A case builds a ``MechanicalSystem`` for a Young's modulus, knows its mesh, rest shape, save
 times and solver settings, samples the moduli of its train/test splits from fixed seeds, and
 has a stable hash of everything that determines its data. Cases are registered by id in
-``benchmarks.registry.CASES``; variants are made with ``dataclasses.replace``.
+``benchmarks.suite.registry.CASES``; variants are made with ``dataclasses.replace``.
 """
 
 from __future__ import annotations

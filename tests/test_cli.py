@@ -34,7 +34,7 @@ def test_simulate_and_export_roundtrip(tmp_path, capsys, monkeypatch):
 
 
 def test_generate_and_export_split(tmp_path, monkeypatch, capsys):
-    from benchmarks import registry
+    from benchmarks.suite import registry
     from groundtruth.cases import RodCase
 
     monkeypatch.setitem(registry.CASES, "rod_tiny", RodCase(id="rod_tiny", n_nodes=5,
@@ -75,7 +75,7 @@ def test_console_script_and_module_entry_point():
 
 def test_import_arrows():
     """groundtruth and the data commands never import torch (STYLE: imports flow one way)."""
-    code = ("import sys, groundtruth.cases, groundtruth.store, benchmarks.cli, benchmarks.generate;"
+    code = ("import sys, groundtruth.cases, groundtruth.store, benchmarks.cli, benchmarks.suite.generate;"
             "benchmarks.cli.build_parser();"
             "bad = [m for m in ('torch', 'meshodenet') if m in sys.modules];"
             "assert not bad, bad")

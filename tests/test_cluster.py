@@ -17,15 +17,15 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from benchmarks.compare import compare, read_csv
+from benchmarks.suite.compare import compare, read_csv
 
 pytest.importorskip("distributed")
 pytest.importorskip("torch")
 
 TINY = "rod_tiny_cluster"
 PLUGIN = f"""
-from benchmarks.registry import register_case
-from benchmarks.suites import RunSpec, Suite, register_suite
+from benchmarks.suite.registry import register_case
+from benchmarks.suite.suites import RunSpec, Suite, register_suite
 from groundtruth.cases import RodCase
 
 register_case(RodCase(id="{TINY}", n_train=4, n_test=2, t_end=0.5), overwrite=True)

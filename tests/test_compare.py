@@ -69,12 +69,12 @@ def test_unreadable_file_exits_2(metrics, tmp_path, capsys):
 def test_plugin_case_registered_from_a_file_generates(tmp_path, monkeypatch, capsys):
     plugin = tmp_path / "mycases.py"
     plugin.write_text(textwrap.dedent("""
-        from benchmarks.registry import register_case
+        from benchmarks.suite.registry import register_case
         from groundtruth.cases import RodCase
         register_case(RodCase(id="rod_plugin", n_nodes=6, length=0.2, t_end=0.2,
                               n_train=2, n_test=1), overwrite=True)
     """))
-    from benchmarks import registry
+    from benchmarks.suite import registry
 
     monkeypatch.setattr(registry, "CASES", dict(registry.CASES))
     monkeypatch.chdir(tmp_path)

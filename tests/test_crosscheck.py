@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from benchmarks import crosscheck as cc
-from benchmarks.registry import CASES
+from benchmarks.suite.registry import CASES
+from benchmarks.validation import crosscheck as cc
 from groundtruth import fem
 from groundtruth import references as br
 from groundtruth.implicit import NewtonSettings
@@ -125,7 +125,7 @@ def test_cli_writes_csv_summary_figure_and_config(tmp_path, monkeypatch):
 
 
 def test_scikit_fem_is_imported_only_by_the_fem_module():
-    code = ("import sys, benchmarks.cli, benchmarks.registry, benchmarks.crosscheck, "
+    code = ("import sys, benchmarks.cli, benchmarks.suite.registry, benchmarks.validation.crosscheck, "
             "groundtruth.cases, groundtruth.references; "
             "assert 'skfem' not in sys.modules, 'skfem imported'; "
             "import groundtruth.fem; assert 'skfem' in sys.modules")

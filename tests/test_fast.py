@@ -20,7 +20,7 @@ TOL = {"rtol": 1e-10, "atol": 1e-12}
 
 def case_arrays(case_id, n=3, frames=6):
     from benchmarks.commands.bench import _bench_arrays
-    from benchmarks.registry import get_case
+    from benchmarks.suite.registry import get_case
 
     return _bench_arrays(get_case(case_id), n, frames, None)[0]
 
@@ -255,7 +255,7 @@ def test_bench_engine_cli_json_report_and_compare(tmp_path, capsys):
 def test_bench_compare_skips_a_graph_whose_mesh_changed():
     """A baseline measured on another mesh of the same graph name (the plate before the in-plane
     case) is not compared: its rates are of other work."""
-    from benchmarks.enginebench import compare
+    from benchmarks.engine.enginebench import compare
 
     def res(nodes, rate, epoch_s):
         r = {"evals_per_s": rate}
@@ -292,7 +292,7 @@ def test_bench_authors_stand_in_counts_its_evaluations_and_trains_every_weight(g
     """`--impl authors`: torchdiffeq's rk4 over ``k`` intervals calls the authors' field 4k times
     (the evaluations the bench divides by), the loss reaches every weight, and a batch of rods
     is one graph of ``n`` times the nodes."""
-    from benchmarks.enginebench import Regime
+    from benchmarks.engine.enginebench import Regime
 
     r = Regime(graph, "train", "authors", 3)
     f = r.authors.f

@@ -22,9 +22,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmarks import procs
 from benchmarks.cli import main
-from benchmarks.compare import compare, derive_tolerances, read_csv
+from benchmarks.suite import procs
+from benchmarks.suite.compare import compare, derive_tolerances, read_csv
 from groundtruth import store
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -91,8 +91,8 @@ def one_line_error(stderr: str, *needles) -> str:
 
 TINY = "rod_tiny_faults"
 PLUGIN = f"""
-from benchmarks.registry import register_case
-from benchmarks.suites import RunSpec, Suite, register_suite
+from benchmarks.suite.registry import register_case
+from benchmarks.suite.suites import RunSpec, Suite, register_suite
 from groundtruth.cases import RodCase
 
 # rod_falling's rod, 4 + 2 trajectories of 0.5 s: generated in about a second
@@ -109,7 +109,7 @@ register_suite(Suite("faults_pair", "two short runs", (
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """A plugin with a tiny case and two suites, its data, and a smoke MGN run on it."""
-    from benchmarks import plugins, registry, suites
+    from benchmarks.suite import plugins, registry, suites
 
     root = tmp_path_factory.mktemp("faults")
     plugin = root / "faults_plugin.py"
@@ -486,10 +486,10 @@ def test_one_epoch_model_fails_the_committed_quick_baseline(tmp_path):
     MeshGraphNet, zero acceleration (a zeroed decoder: the rod stays where it starts). A
     one-epoch MeshGraphNet is not broken at this budget: the committed seed 0 selected its
     epoch 1 on validation (its validation RMSE grows after it), so it would reproduce it."""
-    from benchmarks import metrics as M
-    from benchmarks.registry import get_case
-    from benchmarks.runner import per_run_metrics
-    from benchmarks.runs import rollout_arrays
+    from benchmarks.suite import metrics as M
+    from benchmarks.suite.registry import get_case
+    from benchmarks.suite.runner import per_run_metrics
+    from benchmarks.suite.runs import rollout_arrays
 
     data = os.environ.get("MESHBENCH_DATA") or str(tmp_path / "data")
     assert main(["generate", "rod_falling", "--data-dir", data, "--no-progress"]) == 0

@@ -225,7 +225,7 @@ def test_release_fraction_default_draws_nothing_and_option_starts_windows_at_fra
 
 
 def test_release_fraction_is_checked_and_old_runs_read_as_the_default():
-    from benchmarks.runs import apply_overrides, with_defaults
+    from benchmarks.suite.runs import apply_overrides, with_defaults
     from meshodenet.imex import imex_presets
 
     for cls in (ImexConfig, MeshODENetConfig):
@@ -298,7 +298,7 @@ def test_release_weight_adds_the_first_step_relative_to_standing_still(lam):
 
 
 def test_release_weight_is_checked_and_old_runs_read_as_the_default():
-    from benchmarks.runs import apply_overrides, with_defaults
+    from benchmarks.suite.runs import apply_overrides, with_defaults
     from meshodenet.imex import imex_presets
 
     for cls in (ImexConfig, MeshODENetConfig):

@@ -31,5 +31,5 @@ def test_groundtruth_does_not_import_torch(module):
 
 def test_cli_and_registry_load_without_torch():
     mods = _modules_after("import benchmarks.cli as c; c.build_parser(); "
-                          "import benchmarks.registry")
+                          "import benchmarks.suite.registry")
     assert "torch" not in mods

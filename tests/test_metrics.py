@@ -2,7 +2,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmarks.metrics import full_rollout_rmse, no_motion, rmse_at_step_table, rmse_per_step, tidy_metrics
+from benchmarks.suite.metrics import (
+    full_rollout_rmse,
+    no_motion,
+    rmse_at_step_table,
+    rmse_per_step,
+    tidy_metrics,
+)
 
 
 def test_rmse_definition_by_hand():

@@ -205,7 +205,7 @@ class TestPlateSystem:
         assert len(tri) == 2 * CASE.n_width * (CASE.n_length + CASE.n_clamp_rows - 1)
 
     def test_registered_with_paper_metadata(self):
-        from benchmarks.registry import CASES
+        from benchmarks.suite.registry import CASES
 
         case = CASES["plate_hanging"]
         assert case == PlateCase() and case.id == "plate_hanging"

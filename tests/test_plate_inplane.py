@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks import plate_fidelity as pf
-from benchmarks.registry import CASES
+from benchmarks.suite.registry import CASES
+from benchmarks.validation import plate_fidelity as pf
 from groundtruth.cases import InPlanePlateCase
 from groundtruth.mesh import delaunay_mesh, mesh_edges, staggered_strip_points, triangle_areas
 from groundtruth.plate import cst_spring_stiffness, edge_strain_map, inplane_stiffness, plane_stress_matrix

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from benchmarks.compare import read_csv
-from benchmarks.runner import strip_comments, write_csv, write_readme
+from benchmarks.suite.compare import read_csv
+from benchmarks.suite.runner import strip_comments, write_csv, write_readme
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-import benchmarks.generate as gen
+import benchmarks.suite.generate as gen
 from groundtruth import store
 from groundtruth.cases import RodCase
 from groundtruth.store import StoreError

@@ -12,9 +12,9 @@ import time
 import pandas as pd
 import pytest
 
-from benchmarks import registry
 from benchmarks.cli import main
-from benchmarks.compare import compare, read_csv
+from benchmarks.suite import registry
+from benchmarks.suite.compare import compare, read_csv
 
 pytest.importorskip("torch")
 
@@ -120,9 +120,9 @@ def test_bad_suite_and_pattern_are_clear_errors(smoke, capsys):
 def test_changed_configuration_retrains_and_interrupted_run_resumes(smoke):
     import torch
 
-    from benchmarks.runner import execute_run
-    from benchmarks.runs import train_run
-    from benchmarks.suites import RunSpec
+    from benchmarks.suite.runner import execute_run
+    from benchmarks.suite.runs import train_run
+    from benchmarks.suite.suites import RunSpec
 
     root, _ = smoke
     data = str(root / "data")
@@ -136,7 +136,7 @@ def test_changed_configuration_retrains_and_interrupted_run_resumes(smoke):
         # a run held by a live process is waited for; a lock left by a dead one is taken over
         import threading
 
-        from benchmarks.procs import DirLock
+        from benchmarks.suite.procs import DirLock
 
         held = DirLock(run_dir).acquire()
         threading.Timer(1.0, held.release).start()
@@ -170,8 +170,8 @@ def test_plugin_case_and_suite_run_end_to_end(tmp_path, monkeypatch, capsys):
     """The README's recipe: a new rod case and a suite over it, from a separate file."""
     plugin = tmp_path / "mycases.py"
     plugin.write_text(textwrap.dedent("""
-        from benchmarks.registry import register_case
-        from benchmarks.suites import RunSpec, Suite, register_suite
+        from benchmarks.suite.registry import register_case
+        from benchmarks.suite.suites import RunSpec, Suite, register_suite
         from groundtruth.cases import RodCase
 
         register_case(RodCase(id="rod_short", n_nodes=8, length=0.05, t_end=0.5,
@@ -180,7 +180,7 @@ def test_plugin_case_and_suite_run_end_to_end(tmp_path, monkeypatch, capsys):
                              (RunSpec("rod_short", "meshodenet", "smoke"),
                               RunSpec("rod_short", "mgn", "smoke"))), overwrite=True)
     """))
-    from benchmarks import suites
+    from benchmarks.suite import suites
 
     monkeypatch.setattr(registry, "CASES", dict(registry.CASES))
     monkeypatch.setattr(suites, "SUITES", dict(suites.SUITES))
@@ -204,8 +204,8 @@ def test_every_case_and_model_smoke(case_id, model_id, tmp_path, monkeypatch):
     import numpy as np
     import torch
 
-    from benchmarks.generate import generate
-    from benchmarks.runs import rollout_arrays, train_run
+    from benchmarks.suite.generate import generate
+    from benchmarks.suite.runs import rollout_arrays, train_run
     from meshodenet.registry import MODELS
 
     assert set(MODELS) >= {"meshodenet", "mgn"}
@@ -228,8 +228,8 @@ def test_every_case_and_model_smoke(case_id, model_id, tmp_path, monkeypatch):
 def test_every_registered_suite_resolves():
     """Each run of each suite names registered ids and a valid configuration (e.g. the
     integrators suite's dopri5 + direct and rk4 + adjoint), without training anything."""
-    from benchmarks.runs import apply_overrides
-    from benchmarks.suites import SUITES
+    from benchmarks.suite.runs import apply_overrides
+    from benchmarks.suite.suites import SUITES
     from meshodenet.registry import get_model_spec
 
     assert {"smoke", "quick", "paper", "integrators"} <= set(SUITES)
@@ -256,9 +256,9 @@ def test_runs_stored_before_a_setting_existed_are_reused_with_its_default(smoke,
 
     import torch
 
-    from benchmarks.runner import execute_run
-    from benchmarks.runs import with_defaults
-    from benchmarks.suites import RunSpec
+    from benchmarks.suite.runner import execute_run
+    from benchmarks.suite.runs import with_defaults
+    from benchmarks.suite.suites import RunSpec
 
     root, _ = smoke
     data = str(root / "data")

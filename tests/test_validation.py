@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from benchmarks.registry import CASES, RegistryError, get_case
+from benchmarks.suite.registry import CASES, RegistryError, get_case
 from groundtruth.cases import RodCase
 from groundtruth.implicit import NewtonSettings
 

@@ -26,7 +26,7 @@ def register(sub):
                        "defaults) or `meshbench bench train`.")
     bsub = p.add_subparsers(dest="what", required=False, metavar="WHAT")
     p.set_defaults(func=lambda args: run_engine(bsub.choices["engine"].parse_args([])))
-    from benchmarks import enginebench
+    from benchmarks.engine import enginebench
 
     e = bsub.add_parser("engine", help="vector field, training step, paper epoch and surrogate "
                         "vs solver, per graph and regime", description=enginebench.__doc__,
@@ -112,7 +112,7 @@ def run(args):
 
 
 def run_engine(args):
-    from benchmarks import enginebench as eb
+    from benchmarks.engine import enginebench as eb
 
     def split(text, valid, what):
         items = [x.strip() for x in text.split(",") if x.strip()]
@@ -200,8 +200,8 @@ def _measure(mode: str, p: dict) -> dict:
 
     import torch
 
-    from benchmarks.registry import get_case
-    from benchmarks.runs import pick_device
+    from benchmarks.suite.registry import get_case
+    from benchmarks.suite.runs import pick_device
     from meshodenet.data import Mesh, Trajectories
     from meshodenet.model import MeshODENet, MeshODENetConfig
     from meshodenet.train import TrainConfig, make_optimizer, train_epoch
@@ -221,14 +221,14 @@ def _measure(mode: str, p: dict) -> dict:
     timed = n_batches if p["max_batches"] == 0 else min(p["max_batches"], n_batches)
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats()
-    base = __import__("benchmarks.enginebench").enginebench._rss_gb() * 1024**2
+    base = __import__("benchmarks.engine.enginebench").enginebench._rss_gb() * 1024**2
     model.nfe = 0
     t0 = time.perf_counter()
     train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(0), max_batches=timed)
     if dev.type == "cuda":
         torch.cuda.synchronize()
     wall = time.perf_counter() - t0
-    from benchmarks.enginebench import _peak_gb
+    from benchmarks.engine.enginebench import _peak_gb
 
     peak = _peak_gb() * 1024**2  # VmHWM: ru_maxrss would include the spawning parent's peak
     steps = p["frames"] - 1

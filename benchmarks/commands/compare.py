@@ -32,7 +32,7 @@ def register(sub):
 
 
 def run(args):
-    from benchmarks.compare import compare, read_csv
+    from benchmarks.suite.compare import compare, read_csv
 
     old, new = read_csv(args.baseline), read_csv(args.new)
     keys = [k.strip() for k in args.keys.split(",")] if args.keys else None

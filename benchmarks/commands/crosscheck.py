@@ -24,7 +24,7 @@ def register(sub):
 
 
 def run(args):
-    from benchmarks.crosscheck import get_crosscheck, run_crosscheck
+    from benchmarks.validation.crosscheck import get_crosscheck, run_crosscheck
     from groundtruth.cases import check_youngs
 
     youngs = None if args.youngs is None else check_youngs(args.youngs)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.registry import get_case
+from benchmarks.suite.registry import get_case
 
 
 def register(sub):

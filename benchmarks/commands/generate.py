@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from benchmarks import registry
+from benchmarks.suite import registry
 
 
 def register(sub):
@@ -20,7 +20,7 @@ def register(sub):
 
 
 def run(args):
-    from benchmarks.generate import generate
+    from benchmarks.suite.generate import generate
 
     if args.list:
         for cid, case in sorted(registry.CASES.items()):

@@ -23,7 +23,7 @@ def register(sub):
 
 
 def run(args):
-    from benchmarks.runs import rollout_run
+    from benchmarks.suite.runs import rollout_run
 
     metrics = rollout_run(args.run, args.out, args.split, args.data_dir, args.checkpoint,
                           args.device, args.file)

@@ -51,7 +51,7 @@ def register(sub):
 
 
 def run(args):
-    from benchmarks.suites import SUITES, get_suite
+    from benchmarks.suite.suites import SUITES, get_suite
 
     if args.list:
         for name, s in SUITES.items():
@@ -65,8 +65,8 @@ def run(args):
         if Path(args.results).resolve() == Path(args.compare_with).resolve():
             raise ValueError("--compare-with names the --results directory itself; results "
                              "would be compared with themselves")
-    from benchmarks.plugins import loaded_files
-    from benchmarks.runner import run_suite
+    from benchmarks.suite.plugins import loaded_files
+    from benchmarks.suite.runner import run_suite
 
     res = run_suite(suite, results_dir=args.results, runs_dir=args.runs_dir,
                     data_dir=args.data_dir, seeds=args.seeds, only=args.only, jobs=args.jobs,
@@ -80,7 +80,7 @@ def run(args):
         print(f"meshbench run: no committed baseline {base}; nothing to compare", file=sys.stderr)
         return 0
     from benchmarks.commands.compare import report
-    from benchmarks.compare import compare, read_csv
+    from benchmarks.suite.compare import compare, read_csv
 
     tol_file = base.parent / TOLERANCE_FILE
     use_tol = args.rtol is None and tol_file.exists()

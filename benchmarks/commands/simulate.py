@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from benchmarks.registry import get_case
+from benchmarks.suite.registry import get_case
 from groundtruth.implicit import ConvergenceError
 
 

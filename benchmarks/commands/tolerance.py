@@ -28,9 +28,9 @@ def register(sub):
 def run(args):
     import pandas as pd
 
-    from benchmarks import compare as C
-    from benchmarks.runner import write_csv
-    from benchmarks.suites import get_suite
+    from benchmarks.suite import compare as C
+    from benchmarks.suite.runner import write_csv
+    from benchmarks.suite.suites import get_suite
 
     suite = get_suite(args.suite)
     factor = C.TOLERANCE_FACTOR if args.factor is None else args.factor

@@ -61,12 +61,12 @@ def _init_distributed(args):
 def run(args):
     import torch
 
-    from benchmarks.runs import train_run
+    from benchmarks.suite.runs import train_run
 
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1, got {args.threads}")
     torch.set_num_threads(args.threads)
-    from benchmarks.procs import DirLock, LockBusy
+    from benchmarks.suite.procs import DirLock, LockBusy
 
     rank, world, device = _init_distributed(args)
     lock = None

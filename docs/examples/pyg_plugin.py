@@ -11,7 +11,7 @@ normalised features ``x`` / ``edge_attr``) and trains and rolls it out as a one-
 from torch import nn
 from torch_geometric.nn import GINEConv
 
-from benchmarks.suites import RunSpec, Suite, register_suite
+from benchmarks.suite.suites import RunSpec, Suite, register_suite
 from meshodenet.pyg import register_pyg_model
 
 

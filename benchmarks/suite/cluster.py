@@ -24,7 +24,7 @@ import contextlib
 import multiprocessing
 import socket
 
-from benchmarks import procs
+from benchmarks.suite import procs
 
 
 @contextlib.contextmanager

@@ -27,7 +27,7 @@ def table_steps(case_id: str, n_frames: int) -> tuple:
     evenly spaced steps up to the last frame."""
     if case_id in PAPER_STEPS:
         return PAPER_STEPS[case_id]
-    from benchmarks.registry import CASES
+    from benchmarks.suite.registry import CASES
 
     own = getattr(CASES.get(case_id), "table_steps", None)
     if own:

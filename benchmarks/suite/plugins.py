@@ -9,7 +9,7 @@ Three sources, loaded in this order (each at most once per process):
 
 A plugin file is ordinary Python, e.g.::
 
-    from benchmarks.registry import register_case
+    from benchmarks.suite.registry import register_case
     from groundtruth.cases import RodCase
     register_case(RodCase(id="rod_long", n_nodes=31, length=0.2))
 """

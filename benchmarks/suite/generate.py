@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from benchmarks import plugins, procs
+from benchmarks.suite import plugins, procs
 from groundtruth import store
 from groundtruth.cases import SPLITS
 
@@ -30,7 +30,7 @@ class GenerateReport:
 
 
 def _init_worker(parent_pid: int, plugin_files: tuple) -> None:
-    from benchmarks import plugins
+    from benchmarks.suite import plugins
 
     procs.worker_init(parent_pid)
     plugins.load_all(plugin_files)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.registry import get_case
+from benchmarks.suite.registry import get_case
 from groundtruth import store
 
 CONFIG_FILE = "config.json"

@@ -4,7 +4,7 @@ A ``RunSpec`` is one training run; its ``run_id`` is the stable string that appe
 results CSV and names its directory under ``runs/``. A ``Suite`` expands its specs over seeds.
 Add a suite from a plugin file with ``register_suite``::
 
-    from benchmarks.suites import RunSpec, Suite, register_suite
+    from benchmarks.suite.suites import RunSpec, Suite, register_suite
     register_suite(Suite("mine", "my rod on both models", (
         RunSpec("my_rod", "meshodenet", "quick"), RunSpec("my_rod", "mgn", "quick"))))
 """
@@ -14,7 +14,7 @@ from __future__ import annotations
 import fnmatch
 from dataclasses import dataclass, replace
 
-from benchmarks.registry import lookup
+from benchmarks.suite.registry import lookup
 
 #: The value of the ``integrator`` / ``grad_mode`` columns for models that have none
 #: (MeshGraphNet steps itself autoregressively and trains on single transitions).

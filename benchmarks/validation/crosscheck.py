@@ -358,7 +358,7 @@ def inplane_study(fem_nx: int = 60, fem_ny: int = 4) -> tuple:
 
 
 def _inplane_resolved(case, res: Resolution):
-    from benchmarks.plate_fidelity import refined
+    from benchmarks.validation.plate_fidelity import refined
 
     return dataclasses.replace(refined(case, res.ref_nodes), dt=case.dt * res.dt_scale,
                                poisson=res.poisson)
@@ -431,19 +431,19 @@ def inplane_crosscheck(case, youngs: float | None = None,
 
 
 def _plate_cantilever(youngs: float | None = None) -> CrossCheck:
-    from benchmarks.registry import get_case
+    from benchmarks.suite.registry import get_case
 
     return inplane_crosscheck(get_case("plate_cantilever"), youngs)
 
 
 def _plate_strip(youngs: float | None = None) -> CrossCheck:
-    from benchmarks.registry import get_case
+    from benchmarks.suite.registry import get_case
 
     return plate_crosscheck(get_case("plate_hanging"), youngs)
 
 
 def _rod_cantilever(youngs: float | None = None) -> CrossCheck:
-    from benchmarks.registry import get_case
+    from benchmarks.suite.registry import get_case
 
     return rod_crosscheck(get_case("rod_cantilever"), youngs)
 
@@ -457,7 +457,7 @@ CROSSCHECKS: dict[str, Callable[..., CrossCheck]] = {
 
 
 def get_crosscheck(case_id: str, youngs: float | None = None) -> CrossCheck:
-    from benchmarks.registry import lookup
+    from benchmarks.suite.registry import lookup
 
     return lookup(CROSSCHECKS, case_id, "cross-check")(youngs)
 

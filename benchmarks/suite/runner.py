@@ -1,6 +1,6 @@
 """``meshbench run``: execute a suite and write its results.
 
-For each run of the suite (see ``benchmarks/suites.py``) the runner generates the case's data
+For each run of the suite (see ``benchmarks/suite/suites.py``) the runner generates the case's data
 if missing, trains into ``RUNS/RUN_ID`` (resuming an interrupted run, reusing a finished one
 whose configuration is unchanged, retraining one whose configuration changed), rolls the best
 checkpoint out on the test split and scores it. Then it writes under ``RESULTS/SUITE/``:
@@ -33,10 +33,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from benchmarks import metrics as M
-from benchmarks import procs
-from benchmarks.registry import get_case
-from benchmarks.suites import NO_GRAD_MODE, NO_INTEGRATOR, RunSpec, Suite
+from benchmarks.suite import metrics as M
+from benchmarks.suite import procs
+from benchmarks.suite.registry import get_case
+from benchmarks.suite.suites import NO_GRAD_MODE, NO_INTEGRATOR, RunSpec, Suite
 from groundtruth import store
 
 RECORD_FILE = "record.json"
@@ -78,7 +78,7 @@ README_FILE = "README.md"
 README_INTRO = (
     "The CSV files here are plain (no comment lines): `pandas.read_csv(path)` and spreadsheets "
     "load them as they are. This file describes them; it is rewritten by `meshbench run` and "
-    "`meshbench tolerance`. RMSE is defined once, in `benchmarks/metrics.py`: for one "
+    "`meshbench tolerance`. RMSE is defined once, in `benchmarks/suite/metrics.py`: for one "
     "trajectory at saved frame k, the root of the mean over all nodes of the squared Euclidean "
     "position error, in metres (clamped nodes included). See docs/SUITE.md.")
 
@@ -145,7 +145,7 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
     what it wrote. The kernel releases the lock of a process that died."""
     import torch
 
-    from benchmarks import plugins
+    from benchmarks.suite import plugins
 
     plugins.load_all(plugin_files)
     torch.set_num_threads(threads)
@@ -164,7 +164,7 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
 def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str) -> dict:
     import torch
 
-    from benchmarks.runs import resolve_run, rollout_arrays, train_run, with_defaults
+    from benchmarks.suite.runs import resolve_run, rollout_arrays, train_run, with_defaults
 
     overrides = spec.all_overrides()
     config = resolve_run(spec.case, spec.model, spec.preset, data_dir=data_dir,
@@ -284,13 +284,13 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
     """Run ``suite`` and write ``results_dir/SUITE/``; returns paths and the records.
 
     ``executor``: ``"local"`` (``jobs`` spawned processes on this machine) or ``"dask"``
-    (``benchmarks.cluster``: one dask task per run, on the cluster of ``scheduler``, or on a
+    (``benchmarks.suite.cluster``: one dask task per run, on the cluster of ``scheduler``, or on a
     new ``LocalCluster`` of ``jobs`` worker processes when ``scheduler`` is None)."""
     if executor not in ("local", "dask"):
         raise ValueError(f"--executor must be 'local' or 'dask', got {executor!r}")
     if scheduler is not None and executor != "dask":
         raise ValueError("--scheduler needs --executor dask")
-    from benchmarks.generate import generate
+    from benchmarks.suite.generate import generate
 
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"--jobs must be an int >= 1, got {jobs!r}")
@@ -352,7 +352,7 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
 
     try:
         if executor == "dask":
-            from benchmarks.cluster import run_tasks_dask
+            from benchmarks.suite.cluster import run_tasks_dask
 
             run_tasks_dask(tasks, on_result, scheduler, min(jobs, len(runs)))
         else:
@@ -418,7 +418,7 @@ def write_results(out: Path, records: list, runs_dir: Path, suite: Suite, *,
     md = render_markdown(table, metrics, records, suite, baseline)
     store.atomic_write(paths["markdown"], lambda f: f.write(md), mode="w")
     if figures:
-        from benchmarks import figures as F
+        from benchmarks.suite import figures as F
 
         paths["figures"] = F.suite_figures(out / "figures", metrics, records, runs_dir,
                                            steps, tests)

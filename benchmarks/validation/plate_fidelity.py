@@ -1,6 +1,6 @@
 """Fidelity measurements of the in-plane plate case (``plate_cantilever``), docs/PLATE.md.
 
-``python -m benchmarks.plate_fidelity [convergence|frequency|damping|all]`` writes tidy CSVs to
+``python -m benchmarks.validation.plate_fidelity [convergence|frequency|damping|all]`` writes tidy CSVs to
 ``results/plate_fidelity/``:
 
 - ``convergence.csv``: static tip deflection (centre of the free edge) under self-weight against
@@ -31,7 +31,7 @@ ROWS = (3, 5, 9, 17)
 # The authors' curve, digitized from their published evaluation animation (provenance in the
 # file's header); a copy of the project's shared reference file.
 REFERENCE_CSV = Path(os.environ.get(
-    "MESHBENCH_REFERENCE", Path(__file__).resolve().parent.parent / "docs" / "reference"
+    "MESHBENCH_REFERENCE", Path(__file__).resolve().parents[2] / "docs" / "reference"
     / "authors_plate_tip.csv"))
 
 
@@ -201,7 +201,7 @@ def _write(name: str, rows: list[dict]) -> None:
 
 
 def main(argv=None) -> int:
-    from benchmarks.registry import get_case
+    from benchmarks.suite.registry import get_case
 
     what = (argv if argv is not None else sys.argv[1:]) or ["all"]
     case = get_case("plate_cantilever")

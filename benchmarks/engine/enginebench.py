@@ -33,7 +33,7 @@ generated: the cost of a fixed-step rollout does not depend on the values. All t
 (``reference``: the module-by-module layers, their sum at the receivers PyG's ``scatter``;
 ``handwritten``: the same with the hand-written ``index_add_`` sum;
 ``fast``; ``current`` = whatever the model does by default; ``authors``: a stand-in for the
-authors' code, their architecture trained as they train it, ``benchmarks.authors_style``, on
+authors' code, their architecture trained as they train it, ``benchmarks.engine.authors_style``, on
 the per-graph regimes only): they are measured
 in one process, interleaved round by round, so that their ratios are not skewed by the load of
 a shared machine.
@@ -53,7 +53,7 @@ import time
 GRAPHS = {"rod1": ("rod_falling", 1), "rod8": ("rod_falling", 8), "rod71": ("rod_falling", 71),
           "plate": ("plate_cantilever", 1)}
 REGIMES = ("nograd", "fwdbwd", "train")
-#: ``--impl authors``: the authors' architecture and training loop (``benchmarks.authors_style``),
+#: ``--impl authors``: the authors' architecture and training loop (``benchmarks.engine.authors_style``),
 #: measured on the per-graph regimes only (not the paper epoch, surrogate or MGN sections)
 AUTHORS = "authors"
 PAPER_CASES = ("rod_falling", "plate_cantilever")
@@ -77,7 +77,7 @@ def _set_impl(model, impl: str) -> None:
 
 def _arrays(case_id: str, n: int, frames: int):
     from benchmarks.commands.bench import _bench_arrays
-    from benchmarks.registry import get_case
+    from benchmarks.suite.registry import get_case
 
     return _bench_arrays(get_case(case_id), n, frames, None)
 
@@ -156,7 +156,7 @@ class Regime:
         self.regime, self.n = regime, n
         self.authors = None
         if impl == AUTHORS:  # the authors' architecture on the same graph and trajectories
-            from benchmarks.authors_style import AuthorsStyle
+            from benchmarks.engine.authors_style import AuthorsStyle
 
             mesh, data, self.source = mesh_and_data(case_id, n, frames)
             self.authors = AuthorsStyle(mesh, data, n, regime, train_intervals)
@@ -238,7 +238,7 @@ def _epoch_child(case_id: str, impl: str, steps: int, threads: int) -> dict:
     extrapolated to an epoch of the case's training split."""
     import torch
 
-    from benchmarks.registry import get_case
+    from benchmarks.suite.registry import get_case
     from meshodenet.train import TrainConfig, make_optimizer, train_epoch
 
     torch.set_num_threads(threads)
@@ -263,7 +263,7 @@ def _epoch_child(case_id: str, impl: str, steps: int, threads: int) -> dict:
 
 def _solver_child(case_id: str, n: int) -> dict:
     """Fresh process: the ground-truth solver on the first ``n`` test moduli, one at a time."""
-    from benchmarks.registry import get_case
+    from benchmarks.suite.registry import get_case
 
     case = get_case(case_id)
     ys = case.sample_youngs("test")[:n]
@@ -282,7 +282,7 @@ def _surrogate(case_id: str, impl: str, n_batch: int, repeats: int) -> dict:
     import numpy as np
     import torch
 
-    from benchmarks.registry import get_case
+    from benchmarks.suite.registry import get_case
 
     case = get_case(case_id)
     model, _, _ = build(case_id, 1, 3, impl=impl)
@@ -409,7 +409,7 @@ def mgn_bench(case_id: str, impls, rounds: int = 3, log=print) -> dict:
     frames, and a no-grad rollout of one whole trajectory, per implementation, interleaved."""
     import torch
 
-    from benchmarks.registry import get_case
+    from benchmarks.suite.registry import get_case
     from meshodenet.data import Mesh, Trajectories
     from meshodenet.mgn import MeshGraphNet, mgn_presets
 
@@ -456,7 +456,7 @@ def mgn_bench(case_id: str, impls, rounds: int = 3, log=print) -> dict:
 
 
 def _case_test_youngs(case_id):
-    from benchmarks.registry import get_case
+    from benchmarks.suite.registry import get_case
 
     return get_case(case_id).sample_youngs("test")
 

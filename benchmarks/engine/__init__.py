@@ -1,0 +1,1 @@
+"""The engine benchmark: training throughput of the implementations (``meshbench bench``)."""
