@@ -19,10 +19,10 @@ TOL = {"rtol": 1e-10, "atol": 1e-12}
 
 
 def case_arrays(case_id, n=3, frames=6):
-    from benchmarks.commands.bench import _bench_arrays
+    from benchmarks.engine.enginebench import bench_arrays
     from benchmarks.suite.registry import get_case
 
-    return _bench_arrays(get_case(case_id), n, frames, None)[0]
+    return bench_arrays(get_case(case_id), n, frames, None)[0]
 
 
 def pair(arrays, config, seed=0):

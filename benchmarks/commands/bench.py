@@ -168,38 +168,13 @@ def _print_row(r: dict) -> None:
           f"({r['forward_evals_per_s']:.0f} rollout evals/s); data: {r['data']}", flush=True)
 
 
-def _bench_arrays(case, n: int, frames: int, data_dir):
-    """The case's training arrays cut to ``n`` trajectories and ``frames`` frames, or synthetic
-    ones of that shape when the data is not generated."""
-    import numpy as np
-
-    from groundtruth import store
-
-    try:
-        d = store.load_split(case, "train", data_dir)
-        if d["pos"].shape[0] >= n and d["pos"].shape[1] >= frames:
-            d = dict(d, pos=d["pos"][:n, :frames], vel=d["vel"][:n, :frames],
-                     youngs=d["youngs"][:n], t=d["t"][:frames])
-            return d, "generated"
-    except store.StoreError:
-        pass
-    t = np.arange(frames) * case.save_dt
-    rest = case.rest_positions()
-    rng = np.random.default_rng(0)
-    shape = (n, frames) + rest.shape
-    vel = 1e-3 * rng.standard_normal(shape).cumsum(1) / np.sqrt(frames)
-    pos = rest + np.cumsum(vel, 1) * case.save_dt
-    return store.trajectory_arrays(case, t, pos, vel, case.sample_youngs("train")[:n]
-                                   if case.n_train >= n else np.full(n, case.reference_youngs),
-                                   "train"), "synthetic (no generated data found)"
-
-
 def _measure(mode: str, p: dict) -> dict:
     """Child process: one (possibly partial) epoch of MeshODENet training in ``mode``."""
     import time
 
     import torch
 
+    from benchmarks.engine import enginebench as eb
     from benchmarks.suite.registry import get_case
     from benchmarks.suite.runs import pick_device
     from meshodenet.data import Mesh, Trajectories
@@ -209,7 +184,7 @@ def _measure(mode: str, p: dict) -> dict:
     if p["threads"]:
         torch.set_num_threads(p["threads"])
     dev = pick_device(p["device"])
-    arrays, source = _bench_arrays(get_case(p["case"]), p["trajectories"], p["frames"],
+    arrays, source = eb.bench_arrays(get_case(p["case"]), p["trajectories"], p["frames"],
                                    p["data_dir"])
     data = Trajectories.from_arrays(arrays, device=dev)
     torch.manual_seed(0)
@@ -221,16 +196,14 @@ def _measure(mode: str, p: dict) -> dict:
     timed = n_batches if p["max_batches"] == 0 else min(p["max_batches"], n_batches)
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats()
-    base = __import__("benchmarks.engine.enginebench").enginebench._rss_gb() * 1024**2
+    base = eb.rss_gb() * 1024**2
     model.nfe = 0
     t0 = time.perf_counter()
     train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(0), max_batches=timed)
     if dev.type == "cuda":
         torch.cuda.synchronize()
     wall = time.perf_counter() - t0
-    from benchmarks.engine.enginebench import _peak_gb
-
-    peak = _peak_gb() * 1024**2  # VmHWM: ru_maxrss would include the spawning parent's peak
+    peak = eb.peak_gb() * 1024**2  # VmHWM: ru_maxrss would include the spawning parent's peak
     steps = p["frames"] - 1
     evals_per_rollout = steps * {"euler": 1, "midpoint": 2, "rk4": 4}.get(p["integrator"], 0)
     fwd = evals_per_rollout * timed  # evaluations of the forward rollouts themselves

@@ -76,10 +76,35 @@ def _set_impl(model, impl: str) -> None:
 
 
 def _arrays(case_id: str, n: int, frames: int):
-    from benchmarks.commands.bench import _bench_arrays
     from benchmarks.suite.registry import get_case
 
-    return _bench_arrays(get_case(case_id), n, frames, None)
+    return bench_arrays(get_case(case_id), n, frames, None)
+
+
+def bench_arrays(case, n: int, frames: int, data_dir):
+    """The case's training arrays cut to ``n`` trajectories and ``frames`` frames, or synthetic
+    ones of that shape when the data is not generated."""
+    import numpy as np
+
+    from groundtruth import store
+
+    try:
+        d = store.load_split(case, "train", data_dir)
+        if d["pos"].shape[0] >= n and d["pos"].shape[1] >= frames:
+            d = dict(d, pos=d["pos"][:n, :frames], vel=d["vel"][:n, :frames],
+                     youngs=d["youngs"][:n], t=d["t"][:frames])
+            return d, "generated"
+    except store.StoreError:
+        pass
+    t = np.arange(frames) * case.save_dt
+    rest = case.rest_positions()
+    rng = np.random.default_rng(0)
+    shape = (n, frames) + rest.shape
+    vel = 1e-3 * rng.standard_normal(shape).cumsum(1) / np.sqrt(frames)
+    pos = rest + np.cumsum(vel, 1) * case.save_dt
+    return store.trajectory_arrays(case, t, pos, vel, case.sample_youngs("train")[:n]
+                                   if case.n_train >= n else np.full(n, case.reference_youngs),
+                                   "train"), "synthetic (no generated data found)"
 
 
 def mesh_and_data(case_id: str, n_graphs: int, frames: int, dtype=None):
@@ -212,11 +237,11 @@ def _status_gb(field: str) -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
 
 
-def _rss_gb() -> float:
+def rss_gb() -> float:
     return _status_gb("VmRSS")
 
 
-def _peak_gb() -> float:
+def peak_gb() -> float:
     return _status_gb("VmHWM")
 
 
@@ -227,9 +252,9 @@ def _memory_child(graph: str, regime: str, impl: str, train_intervals: int,
 
     torch.set_num_threads(threads)
     r = Regime(graph, regime, impl, train_intervals)
-    base = _rss_gb()
+    base = rss_gb()
     r.run(3)
-    peak = _peak_gb()
+    peak = peak_gb()
     return {"peak_rss_gb": peak, "setup_rss_gb": base, "peak_above_setup_gb": max(peak - base, 0)}
 
 
@@ -249,11 +274,11 @@ def _epoch_child(case_id: str, impl: str, steps: int, threads: int) -> dict:
     n_val = max(1, round(0.1 * case.n_train)) if case.n_train >= 2 else 0
     steps_per_epoch = case.n_train - n_val
     train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(0), max_batches=1)  # warm
-    base = _rss_gb()
+    base = rss_gb()
     t0 = time.perf_counter()
     train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(1), max_batches=steps)
     wall = time.perf_counter() - t0
-    peak = _peak_gb()
+    peak = peak_gb()
     return {"case": case_id, "impl": impl, "steps_timed": steps,
             "steps_per_epoch": steps_per_epoch, "step_s": wall / steps,
             "epoch_s": wall / steps * steps_per_epoch, "peak_rss_gb": peak,
