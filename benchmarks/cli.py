@@ -13,8 +13,8 @@ import sys
 import threading
 from pathlib import Path
 
-COMMANDS = ["generate", "simulate", "export", "crosscheck", "compare", "train", "rollout",
-            "bench", "run", "tolerance"]
+COMMANDS = ["generate", "simulate", "export", "crosscheck", "plate_fidelity", "compare", "train",
+            "rollout", "bench", "run", "tolerance"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -227,3 +227,18 @@ def test_cli_static_of_the_registered_case(tmp_path):
     assert data["pos"].shape == (1, 1, 182, 3) and data["node_type"].sum() == 5
     np.testing.assert_allclose(data["pos"][0, 0], CASE.solve_static(7.5e6))
     assert isinstance(CASE, InPlanePlateCase)
+
+
+def test_plate_fidelity_command_writes_the_measurement(tmp_path, monkeypatch, capsys):
+    from benchmarks.cli import main
+
+    row = {"n_rows": 3, "youngs": 5e6, "omega_network": 1.0, "omega_euler_bernoulli": 1.0,
+           "omega_continuum": 1.0, "ratio_euler_bernoulli": 1.0, "ratio_continuum": 1.0}
+    monkeypatch.setattr(pf, "frequency", lambda case: [row])
+    assert main(["plate-fidelity", "frequency", "--out-dir", str(tmp_path)]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frequency.csv"]
+    assert (tmp_path / "frequency.csv").read_text().startswith("n_rows,youngs,omega_network,")
+    assert f"wrote {tmp_path}" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        main(["plate-fidelity", "nope"])
+    assert e.value.code == 2

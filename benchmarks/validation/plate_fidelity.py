@@ -1,7 +1,7 @@
 """Fidelity measurements of the in-plane plate case (``plate_cantilever``), docs/PLATE.md.
 
-``python -m benchmarks.validation.plate_fidelity [convergence|frequency|damping|all]`` writes tidy CSVs to
-``results/plate_fidelity/``:
+``meshbench plate-fidelity [convergence|frequency|damping|all]`` writes tidy CSVs to
+``results/plate_fidelity/`` (``--out-dir``):
 
 - ``convergence.csv``: static tip deflection (centre of the free edge) under self-weight against
   Reissner's extensible, shearable elastica (``references.elastica_shear``, kappa = 5/6) at
@@ -20,7 +20,6 @@ import dataclasses
 import json
 import math
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -193,48 +192,59 @@ def damping_ratios(case, moduli=(2.5e6, 7.5e6)) -> dict:
     return {f"{y:.3g}": case.damping_rate / (2 * network_frequency(case, y)) for y in moduli}
 
 
-def _write(name: str, rows: list[dict]) -> None:
+def _write(out: Path, name: str, rows: list[dict]) -> None:
     import pandas as pd
 
-    OUT.mkdir(parents=True, exist_ok=True)
-    pd.DataFrame(rows).to_csv(OUT / name, index=False, float_format="%.6g")
+    from groundtruth.store import atomic_write
+
+    atomic_write(out / name, lambda f: pd.DataFrame(rows).to_csv(f, index=False,
+                                                                 float_format="%.6g"), mode="w")
 
 
-def main(argv=None) -> int:
+def run_fidelity(what: str = "all", out_dir: Path = OUT, say=print) -> None:
+    """Run the ``what`` measurement (``convergence``, ``frequency``, ``damping`` or ``all``) on
+    ``plate_cantilever``, write its files under ``out_dir`` and ``say`` one line per row."""
     from benchmarks.suite.registry import get_case
 
-    what = (argv if argv is not None else sys.argv[1:]) or ["all"]
-    case = get_case("plate_cantilever")
-    if what[0] in ("convergence", "all"):
-        rows = convergence(case)
-        _write("convergence.csv", rows)
-        for r in rows:
-            print(f"rows {r['n_rows']:2d} nodes {r['n_nodes']:4d} calib {r['calibrated']} "
-                  f"Y {r['youngs']:.3g}: tip {r['tip_m']:.4f} m, Reissner {r['reissner_m']:.4f} m,"
-                  f" ratio {r['ratio']:.4f} (factor {r['calibration']:.4f})")
-    if what[0] in ("frequency", "all"):
-        rows = frequency(case)
-        _write("frequency.csv", rows)
-        for r in rows:
-            print(f"rows {r['n_rows']:2d} Y {r['youngs']:.3g}: omega {r['omega_network']:.4f}, "
-                  f"EB {r['omega_euler_bernoulli']:.4f}, continuum {r['omega_continuum']:.4f}"
-                  f" rad/s, ratios {r['ratio_euler_bernoulli']:.4f} {r['ratio_continuum']:.4f}")
-    if what[0] in ("damping", "all"):
-        rows, best = damping_fit(case)
-        _write("damping_fit.csv", rows + [dict(best)])
-        for r in rows:
-            print(f"c {r['damping_rate']:5.1f} 1/s: Y {r['youngs']:.4g} Pa, rms {r['rms_m']:.4f} m,"
-                  f" max {r['max_abs_m']:.4f} m")
-        OUT.mkdir(parents=True, exist_ok=True)
-        (OUT / "damping_fit.json").write_text(json.dumps(
-            {"best": best, "case_damping_rate": case.damping_rate,
-             "zeta_at_case_rate": damping_ratios(case), "reference": str(REFERENCE_CSV)},
-            indent=1) + "\n")
-        print(f"best c = {best['damping_rate']:.2f} 1/s (Y {best['youngs']:.4g} Pa, rms "
-              f"{best['rms_m']:.4f} m, max {best['max_abs_m']:.4f} m); damping ratios at the "
-              f"case's c: {damping_ratios(case)}")
-    return 0
+    case, out = get_case("plate_cantilever"), Path(out_dir)
+    if what in ("convergence", "all"):
+        _convergence(case, out, say)
+    if what in ("frequency", "all"):
+        _frequency(case, out, say)
+    if what in ("damping", "all"):
+        _damping(case, out, say)
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+def _convergence(case, out: Path, say) -> None:
+    rows = convergence(case)
+    _write(out, "convergence.csv", rows)
+    for r in rows:
+        say(f"rows {r['n_rows']:2d} nodes {r['n_nodes']:4d} calib {r['calibrated']} "
+            f"Y {r['youngs']:.3g}: tip {r['tip_m']:.4f} m, Reissner {r['reissner_m']:.4f} m,"
+            f" ratio {r['ratio']:.4f} (factor {r['calibration']:.4f})")
+
+
+def _frequency(case, out: Path, say) -> None:
+    rows = frequency(case)
+    _write(out, "frequency.csv", rows)
+    for r in rows:
+        say(f"rows {r['n_rows']:2d} Y {r['youngs']:.3g}: omega {r['omega_network']:.4f}, "
+            f"EB {r['omega_euler_bernoulli']:.4f}, continuum {r['omega_continuum']:.4f}"
+            f" rad/s, ratios {r['ratio_euler_bernoulli']:.4f} {r['ratio_continuum']:.4f}")
+
+
+def _damping(case, out: Path, say) -> None:
+    from groundtruth.store import atomic_write
+
+    rows, best = damping_fit(case)
+    _write(out, "damping_fit.csv", rows + [dict(best)])
+    for r in rows:
+        say(f"c {r['damping_rate']:5.1f} 1/s: Y {r['youngs']:.4g} Pa, rms {r['rms_m']:.4f} m,"
+            f" max {r['max_abs_m']:.4f} m")
+    text = json.dumps({"best": best, "case_damping_rate": case.damping_rate,
+                       "zeta_at_case_rate": damping_ratios(case),
+                       "reference": str(REFERENCE_CSV)}, indent=1) + "\n"
+    atomic_write(out / "damping_fit.json", lambda f: f.write(text), mode="w")
+    say(f"best c = {best['damping_rate']:.2f} 1/s (Y {best['youngs']:.4g} Pa, rms "
+        f"{best['rms_m']:.4f} m, max {best['max_abs_m']:.4f} m); damping ratios at the "
+        f"case's c: {damping_ratios(case)}")
