@@ -1,0 +1,15 @@
+"""Cases: frozen dataclasses that say what to simulate and how to sample the datasets.
+
+A case builds a ``MechanicalSystem`` for a Young's modulus, knows its mesh, rest shape, save
+times and solver settings, samples the moduli of its train/test splits from fixed seeds, and
+has a stable hash of everything that determines its data. One module per case family
+(``rod``, ``plate``), the shared base in ``base``. Cases are registered by id in
+``benchmarks.suite.registry.CASES``; variants are made with ``dataclasses.replace``.
+"""
+
+from groundtruth.cases.base import SOLVER_VERSION, SPLITS, CaseBase, check_youngs
+from groundtruth.cases.plate import InPlanePlateCase, PlateCase
+from groundtruth.cases.rod import RodCase
+
+__all__ = ["SOLVER_VERSION", "SPLITS", "CaseBase", "InPlanePlateCase", "PlateCase", "RodCase",
+           "check_youngs"]
