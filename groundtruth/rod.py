@@ -11,7 +11,7 @@ length of the two edges) so that the sum converges to the integral of 1/2 EI kap
     E_b = 1/2 EI |kappa_b - kappa_b0|^2 / l_k,
 
 with the natural curvature ``kappa_b0`` taken from the rest shape. For a planar rod this is
-the signed scalar formula of the paper (REFERENCE §1, ``kappa . z``) plus a stiffness against
+the signed scalar formula of the paper (docs/SOURCES.md, ``kappa . z``) plus a stiffness against
 leaving the plane; for a straight rest shape it is the isotropic 3-D bending energy.
 
 Limitation (no material frame, no twist): ``kappa_b0`` is a fixed vector in space, so the

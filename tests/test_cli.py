@@ -81,3 +81,18 @@ def test_import_arrows():
             "assert not bad, bad")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
+
+
+def test_every_builtin_suite_is_listed_in_the_help_and_the_docs():
+    from pathlib import Path
+
+    from benchmarks.commands import run
+
+    # a fresh interpreter: other tests register suites of their own
+    builtin = subprocess.run([sys.executable, "-c", "from benchmarks.suite.suites import SUITES; "
+                              "print(' '.join(SUITES))"], capture_output=True, text=True,
+                             check=True).stdout.split()
+    table = (Path(__file__).resolve().parents[1] / "docs" / "SUITE.md").read_text()
+    assert "hanging" in builtin
+    for name in builtin:
+        assert f" {name}," in run.__doc__ and f"| `{name}`" in table, name

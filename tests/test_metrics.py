@@ -49,3 +49,25 @@ def test_table_mean_std_and_relative_increase():
     assert r.rmse_mean == 4 and r.rmse_std == 2 and r.n_trajectories == 2
     assert np.isclose(r.increase_vs_meshodenet_pct, 100.0)
     assert np.allclose(tab[tab.model == "meshodenet"].increase_vs_meshodenet_pct, 0.0)
+
+
+def test_rmse_is_defined_once_and_keeps_the_arithmetic_of_the_stored_numbers():
+    """The suite's per-trajectory RMSEs (metrics.csv) and the pooled ones of training and
+    runs.csv all come from ``meshodenet.metrics.rmse``, bit for bit the formulas that wrote the
+    committed results (kept here as the oracle)."""
+    torch = pytest.importorskip("torch")
+    from meshodenet.metrics import position_rmse, rmse_per_frame
+
+    rng = np.random.default_rng(3)
+    true = np.cumsum(rng.normal(scale=1e-2, size=(4, 61, 37, 3)), axis=1)
+    pred = true + rng.normal(scale=1e-3, size=true.shape)
+    same = np.testing.assert_array_equal
+    same(rmse_per_step(pred, true), np.sqrt(np.mean(np.sum((pred - true) ** 2, -1), -1)))
+    same(full_rollout_rmse(pred, true),
+         np.sqrt(np.mean(np.sum((pred - true)[:, 1:] ** 2, -1), axis=(1, 2))))
+    for dtype in (torch.float32, torch.float64):
+        p, t = torch.tensor(pred, dtype=dtype), torch.tensor(true, dtype=dtype)
+        assert torch.equal(rmse_per_frame(p, t),
+                           ((p.double() - t.double()) ** 2).sum(-1).mean(dim=(0, 2)).sqrt())
+        assert position_rmse(p, t) == float(
+            ((p[:, 1:].double() - t[:, 1:].double()) ** 2).sum(-1).mean().sqrt())

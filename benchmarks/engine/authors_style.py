@@ -1,8 +1,8 @@
 """``meshbench bench --impl authors``: a stand-in for the authors' MeshODENet training code, to
 measure our engine against the implementation the paper's numbers came from.
 
-Written from the description of the authors' code in the project's REFERENCE.md (section 5), not
-taken from it: a ``torch_geometric`` ``MessagePassing`` processor of one layer (edge MLP on
+Written from the description of the authors' code in docs/SOURCES.md ("The authors' MeshODENet
+code"), not taken from it: a ``torch_geometric`` ``MessagePassing`` processor of one layer (edge MLP on
 ``[h_i, h_j, e]`` with a residual, sum at the receivers, node MLP on ``[h, sum e]`` with a
 residual), MLPs of two hidden layers of 128 with ReLU and no LayerNorm, a node encoder on the
 normalised velocity, an edge encoder on the normalised current relative position and its norm

@@ -78,7 +78,7 @@ README_FILE = "README.md"
 README_INTRO = (
     "The CSV files here are plain (no comment lines): `pandas.read_csv(path)` and spreadsheets "
     "load them as they are. This file describes them; it is rewritten by `meshbench run` and "
-    "`meshbench tolerance`. RMSE is defined once, in `benchmarks/suite/metrics.py`: for one "
+    "`meshbench tolerance`. RMSE is defined once, in `meshodenet/metrics.py`: for one "
     "trajectory at saved frame k, the root of the mean over all nodes of the squared Euclidean "
     "position error, in metres (clamped nodes included). See docs/SUITE.md.")
 

@@ -1,5 +1,6 @@
-"""No import circle: the static import graph of the project's modules (every ``import`` and
-``from ... import`` statement, those inside functions included) has no cycle."""
+"""The layout of the packages: no import circle (the static import graph of every ``import``
+and ``from ... import`` statement, those inside functions included, has no cycle), no module
+over 650 lines, the plugin API where the docs say it is."""
 
 import ast
 from pathlib import Path
@@ -90,3 +91,9 @@ def test_plugin_api_from_the_suite_package_without_loading_numpy_early():
             "register_case, register_suite; import benchmarks.suite.suites as s; "
             "assert RunSpec is s.RunSpec")
     subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True)
+
+
+def test_no_module_over_650_lines():
+    long = {str(p.relative_to(ROOT)): n for p in _modules().values()
+            if (n := len(p.read_text().splitlines())) > 650}
+    assert long == {}
