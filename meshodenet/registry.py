@@ -10,6 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields
 from pathlib import Path
 
+from meshbench_registry import lookup
 from meshodenet.data import Mesh
 from meshodenet.imex import ImexConfig, MeshODENetIMEX, imex_presets
 from meshodenet.integrators import INTEGRATORS
@@ -64,11 +65,8 @@ __all__ = ["MODELS", "INTEGRATORS", "ModelSpec", "get_model_spec", "register_mod
 
 
 def get_model_spec(name: str) -> ModelSpec:
-    try:
-        return MODELS[name]
-    except KeyError:
-        raise ValueError(f"unknown model id {name!r}; valid ids: "
-                         f"{', '.join(sorted(MODELS)) or '(none registered)'}") from None
+    """``MODELS[name]``; an unknown id raises ``RegistryError`` listing the valid ones."""
+    return lookup(MODELS, name, "model")
 
 
 def register_model(name: str, spec: ModelSpec, overwrite: bool = False) -> ModelSpec:

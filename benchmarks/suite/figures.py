@@ -31,10 +31,24 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
+def _has_scheme(model: str) -> bool:
+    """Whether the model's configuration chooses an integrator and a gradient mode (its labels
+    then name them)."""
+    import dataclasses
+
+    from meshodenet.registry import MODELS
+
+    spec = MODELS.get(model)
+    return spec is not None and {"integrator", "grad_mode"} <= {
+        f.name for f in dataclasses.fields(spec.config_cls)}
+
+
 def _label(rec: dict) -> str:
-    if rec["model"] == "meshodenet":
-        return f"meshodenet ({rec['integrator']}, {rec['grad_mode']})"
-    return rec["model"]
+    return _scheme_label(rec["model"], rec["integrator"], rec["grad_mode"])
+
+
+def _scheme_label(model: str, integrator: str, grad_mode: str) -> str:
+    return f"{model} ({integrator}, {grad_mode})" if _has_scheme(model) else model
 
 
 def _color(model: str, i: int) -> str:
@@ -51,7 +65,7 @@ def rmse_vs_step(metrics: pd.DataFrame, case: str, path: Path) -> Path:
     for i, (key, d) in enumerate(m.groupby(groups, sort=True)):
         g = d.groupby("step")["rmse"]
         mean, lo, hi = g.mean(), g.min(), g.max()
-        label = key[0] if key[0] != "meshodenet" else f"meshodenet ({key[1]}, {key[2]})"
+        label = _scheme_label(*key)
         c = _color(key[0], i) if few else f"C{i}"
         ax.plot(mean.index, mean.values, color=c, label=label)
         ax.fill_between(mean.index, lo.values, hi.values, color=c, alpha=0.2, lw=0)

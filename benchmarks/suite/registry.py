@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 from groundtruth.cases import InPlanePlateCase, PlateCase, RodCase
+from meshbench_registry import RegistryError, lookup
+
+__all__ = ["CASES", "RegistryError", "get_case", "lookup", "register_case"]
 
 CASES: dict = {
     "rod_falling": RodCase(),
@@ -22,22 +25,6 @@ CASES: dict = {
     # The paper's text read literally: gravity through the thickness, a heavy swinging chain.
     "plate_hanging": PlateCase(),
 }
-
-
-class RegistryError(KeyError):
-    """Unknown id in a registry; the message lists the valid ids."""
-
-    def __str__(self) -> str:  # KeyError would quote the message
-        return str(self.args[0])
-
-
-def lookup(registry: dict, key: str, kind: str = "case"):
-    """``registry[key]`` with an error that names the bad key and lists the valid ones."""
-    try:
-        return registry[key]
-    except KeyError:
-        valid = ", ".join(sorted(registry)) or "(none registered)"
-        raise RegistryError(f"unknown {kind} id {key!r}; valid ids: {valid}") from None
 
 
 def get_case(case_id: str):

@@ -36,7 +36,7 @@ import pandas as pd
 from benchmarks.suite import metrics as M
 from benchmarks.suite import procs
 from benchmarks.suite.registry import get_case
-from benchmarks.suite.suites import NO_GRAD_MODE, NO_INTEGRATOR, RunSpec, Suite
+from benchmarks.suite.suites import RunSpec, Suite
 from groundtruth import store
 
 RECORD_FILE = "record.json"
@@ -123,10 +123,35 @@ def _log(msg: str) -> None:
     print(f"[meshbench run] {msg}", file=sys.stderr, flush=True)
 
 
+#: The ``integrator`` / ``grad_mode`` columns of a model that has neither a configurable nor a
+#: fixed scheme: it steps itself autoregressively and trains on single transitions.
+NO_INTEGRATOR = "autoregressive"
+NO_GRAD_MODE = "one_step"
+
+
+def check_runs(runs) -> None:
+    """Fail before any work on an unknown case or model id, or on an ``integrator`` /
+    ``grad_mode`` given to a model whose configuration has no such field."""
+    import dataclasses
+
+    from meshodenet.registry import get_model_spec
+
+    for r in runs:
+        get_case(r.case)
+        config_cls = get_model_spec(r.model).config_cls
+        fields = {f.name for f in dataclasses.fields(config_cls)}
+        for name in ("integrator", "grad_mode"):
+            if getattr(r, name) and name not in fields:
+                raise ValueError(f"run {r.run_id}: {name}={getattr(r, name)!r} but model "
+                                 f"{r.model!r} has no {name} ({config_cls.__name__} has no such "
+                                 "field); drop it from the RunSpec")
+
+
 # --- one run (executes in a worker process) -------------------------------------------------
 def _integrator_ids(config: dict) -> tuple[str, str]:
     """The run's ``integrator`` / ``grad_mode`` columns: its config's, else its model class's
-    ``integrator_id`` / ``grad_mode_id`` (a model with a fixed scheme), else MGN's values."""
+    ``integrator_id`` / ``grad_mode_id`` (a model with a fixed scheme), else ``NO_INTEGRATOR``
+    / ``NO_GRAD_MODE``."""
     from meshodenet.registry import get_model_spec
 
     mc = config["model_config"]
@@ -296,12 +321,8 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
         raise ValueError(f"--jobs must be an int >= 1, got {jobs!r}")
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
         raise ValueError(f"--threads must be an int >= 1, got {threads!r}")
-    from meshodenet.registry import get_model_spec
-
     runs = suite.runs(seeds, only)
-    for r in runs:  # fail before any work on an unknown id
-        get_case(r.case)
-        get_model_spec(r.model)
+    check_runs(runs)
     out = Path(results_dir) / suite.name
     runs_dir = Path(runs_dir)
     t0 = time.time()

@@ -16,18 +16,13 @@ from dataclasses import dataclass, replace
 
 from benchmarks.suite.registry import lookup
 
-#: The value of the ``integrator`` / ``grad_mode`` columns for models that have none
-#: (MeshGraphNet steps itself autoregressively and trains on single transitions).
-NO_INTEGRATOR = "autoregressive"
-NO_GRAD_MODE = "one_step"
-
 
 @dataclass(frozen=True)
 class RunSpec:
-    """One training run. ``integrator`` / ``grad_mode`` (MeshODENet only) override the
-    preset's when given; ``overrides`` are extra ``train.FIELD=VALUE`` / ``model.FIELD=VALUE``
-    settings (as ``meshbench train --set``); ``tag`` distinguishes runs that differ only in
-    ``overrides``."""
+    """One training run. ``integrator`` / ``grad_mode`` override the preset's when given (for
+    a model whose configuration has these fields: ``runner.check_runs``); ``overrides`` are
+    extra ``train.FIELD=VALUE`` / ``model.FIELD=VALUE`` settings (as ``meshbench train
+    --set``); ``tag`` distinguishes runs that differ only in ``overrides``."""
 
     case: str
     model: str
@@ -45,10 +40,6 @@ class RunSpec:
                 raise ValueError(f"RunSpec.{name} must be a non-empty id without '/', got {v!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"RunSpec.seed must be an int >= 0, got {self.seed!r}")
-        # a plugin model with such fields can set them through overrides
-        if self.model == "mgn" and (self.integrator or self.grad_mode):
-            raise ValueError(f"RunSpec: model 'mgn' has no integrator/grad_mode "
-                             f"(got {self.integrator!r}, {self.grad_mode!r})")
 
     @property
     def run_id(self) -> str:
