@@ -189,39 +189,24 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
 def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str) -> dict:
     import torch
 
-    from benchmarks.suite.runs import resolve_run, rollout_arrays, train_run, with_defaults
+    from benchmarks.suite.runs import decide_run, resolve_run, rollout_arrays, train_resolved
 
     overrides = spec.all_overrides()
-    config = resolve_run(spec.case, spec.model, spec.preset, data_dir=data_dir,
-                         overrides=overrides)["config"]
-    rec_path = run_dir / RECORD_FILE
-    if rec_path.exists():
-        rec = json.loads(rec_path.read_text())
-        if with_defaults(rec.get("config")) == config and (run_dir / METRICS_FILE).exists():
-            rec["reused"] = True
-            return rec
+    resolved = resolve_run(spec.case, spec.model, spec.preset, data_dir=data_dir,
+                           overrides=overrides)
+    config = resolved["config"]
+    decision = decide_run(run_dir, config, finished=(RECORD_FILE, METRICS_FILE))
+    if decision.action == "reuse":
+        return {**decision.stored, "reused": True}
     # every input is checked before the first epoch: a corrupt test split fails now
     true = store.load_split(get_case(spec.case), "test", data_dir)
-    resume = False
-    if (run_dir / "config.json").exists():
-        why = "configuration changed since the stored run"
-        try:
-            old = json.loads((run_dir / "config.json").read_text())
-        except (OSError, json.JSONDecodeError):
-            old, why = None, "config.json is unreadable"
-        if with_defaults(old) == config and (run_dir / "last.pt").exists():
-            from meshodenet.train import CheckpointError, load_checkpoint
-
-            try:
-                load_checkpoint(run_dir / "last.pt")
-                resume = True
-            except CheckpointError as e:
-                why = f"{e}"
-        if not resume:
-            _log(f"{spec.run_id}: {why}; retraining")
-            for p in run_dir.iterdir():
-                if p.name != ".lock":
-                    shutil.rmtree(p) if p.is_dir() else p.unlink()
+    resume = decision.action == "resume"
+    if decision.action == "retrain":
+        _log(f"{spec.run_id}: {decision.why}; retraining")
+        for p in run_dir.iterdir():
+            if p.name != ".lock":
+                shutil.rmtree(p) if p.is_dir() else p.unlink()
+    rec_path = run_dir / RECORD_FILE
     rec_path.unlink(missing_ok=True)
     t0 = time.time()
     n_epochs = config["train"]["epochs"]
@@ -232,10 +217,9 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
         _log(f"{spec.run_id}: epoch {epoch}/{n_epochs}, loss {row['train_loss']:.4g}, {val}, "
              f"{row['epoch_time_s']:.0f} s")
 
-    summary = train_run(spec.case, spec.model, spec.preset, run_dir, resume=resume,
-                        data_dir=data_dir, overrides=overrides, device=device,
-                        progress=progress, evaluate=False,
-                        on_epoch_end=None if progress else log_epoch)
+    summary = train_resolved(resolved, run_dir, decision, data_dir=data_dir, device=device,
+                             progress=progress, evaluate=False,
+                             on_epoch_end=None if progress else log_epoch)
     sessions = json.loads((run_dir / "sessions.json").read_text())
     pred, m = rollout_arrays(run_dir, "test", data_dir, "best", device, arrays=true)
     store.save_npz(run_dir / PRED_FILE, pred)

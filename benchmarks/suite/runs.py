@@ -146,50 +146,138 @@ def resolve_run(case_id: str, model_id: str, preset: str, *, data_dir=None, over
             "model_cfg": model_cfg, "tr_idx": tr_idx, "val_idx": val_idx, "config": config}
 
 
+#: Differences from the stored configuration that ``meshbench train --resume`` continues
+#: through: more epochs, and the overrides that set them.
+RESUME_IGNORES = ("train.epochs:", "overrides:")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunDecision:
+    """What to do with a run directory for a resolved configuration, decided once.
+
+    ``action``: ``reuse`` (a finished run of this configuration: ``stored`` is its record),
+    ``resume`` (a run of this configuration with a loadable ``last.pt``: ``stored`` is its
+    configuration), ``retrain`` (a stored run that cannot continue: ``why``, ``problem``) or
+    ``fresh`` (nothing stored). ``problem``: ``no_checkpoint``, ``bad_config``,
+    ``config_changed`` (``changes`` lists them) or ``bad_checkpoint``."""
+
+    action: str
+    why: str = ""
+    problem: str | None = None
+    changes: tuple = ()
+    stored: dict | None = None
+
+
+def _changes(old: dict, new: dict, ignore: tuple) -> list[str]:
+    """The differences of ``new`` from ``old`` not under the ``ignore`` prefixes."""
+    if not ignore:
+        return [] if old == new else (_diff(old, new) or ["the configuration"])
+    return [d for d in _diff(old, new) if not d.startswith(ignore)]
+
+
+def _finished_record(out: Path, config: dict, finished: tuple) -> dict | None:
+    """The record (``finished[0]``, JSON with the run's ``config``) of a finished run of
+    ``config`` whose outputs ``finished[1:]`` are all present, else None."""
+    rec_path = out / finished[0]
+    if not rec_path.exists():
+        return None
+    rec = json.loads(rec_path.read_text())
+    done = all((out / name).exists() for name in finished[1:])
+    return rec if done and with_defaults(rec.get("config")) == config else None
+
+
+def decide_run(out, config: dict, *, finished: tuple = (), ignore: tuple = ()) -> RunDecision:
+    """Decide what to do with run directory ``out`` for the resolved ``config``: reuse it
+    when ``finished`` (a record file, then the outputs of a finished run) says it is done,
+    resume it when its ``config.json`` matches (up to the ``ignore`` prefixes) and its
+    ``last.pt`` loads, else retrain it (or start fresh when nothing is stored)."""
+    from meshodenet.train import CheckpointError, load_checkpoint
+
+    out = Path(out)
+    rec = _finished_record(out, config, finished) if finished else None
+    if rec is not None:
+        return RunDecision("reuse", stored=rec)
+    cfg_path, last = out / CONFIG_FILE, out / "last.pt"
+    if not cfg_path.exists() and not last.exists():
+        return RunDecision("fresh", problem="no_checkpoint")
+    try:
+        old = with_defaults(json.loads(cfg_path.read_text()))
+    except (OSError, json.JSONDecodeError) as e:
+        return RunDecision("retrain", "config.json is unreadable", "bad_config", (str(e),))
+    changes = tuple(_changes(old, config, ignore))
+    if changes:
+        return RunDecision("retrain", "configuration changed since the stored run",
+                           "config_changed", changes, old)
+    if not last.exists():
+        return RunDecision("retrain", "no epoch had finished (no last.pt)", "no_checkpoint",
+                           stored=old)
+    try:
+        load_checkpoint(last)
+    except CheckpointError as e:
+        return RunDecision("retrain", str(e), "bad_checkpoint", stored=old)
+    return RunDecision("resume", stored=old)
+
+
+def _check_request(d: RunDecision, out: Path, resume: bool) -> None:
+    """``meshbench train --resume``'s errors for a run that cannot continue."""
+    again = f"start it again with `rm -r {out}` and the same command without --resume"
+    if not resume:
+        return
+    if d.problem == "no_checkpoint":
+        raise FileNotFoundError(f"--resume: {out / 'last.pt'} does not exist; run without "
+                                "--resume to start this run")
+    if d.problem == "bad_checkpoint":
+        from meshodenet.train import CheckpointError
+
+        raise CheckpointError(f"--resume: {d.why}; this run cannot continue: {again}")
+    if d.problem == "bad_config":
+        raise ValueError(f"--resume: {out / CONFIG_FILE} is unreadable ({d.changes[0]}); "
+                         f"start the run again with `rm -r {out}` and the same command without "
+                         "--resume")
+    if d.problem == "config_changed":
+        raise ValueError(f"--resume: the configuration differs from {out / CONFIG_FILE}: "
+                         + "; ".join(d.changes) + ". Resume with the same settings or choose "
+                         "another --out")
+
+
 def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = False,
               data_dir=None, overrides=(), epochs: int | None = None, device: str = "auto",
               progress: bool = True, on_epoch_end=None, evaluate: bool = True) -> dict:
-    """Train ``model_id`` on ``case_id`` into ``out``; returns the summary it prints."""
+    """``meshbench train``: train ``model_id`` on ``case_id`` into ``out`` (continue it with
+    ``resume``); returns the summary it prints."""
+    t_start = time.time()
+    out = Path(out)
+    r = resolve_run(case_id, model_id, preset, data_dir=data_dir, overrides=overrides,
+                    epochs=epochs)
+    if evaluate and (store.data_dir(data_dir) / r["case"].id / "test.npz").exists():
+        store.load_split(r["case"], "test", data_dir)  # every input checked before epoch 1
+    decision = decide_run(out, r["config"], ignore=RESUME_IGNORES) if resume else None
+    _check_request(decision, out, resume)
+    return train_resolved(r, out, decision, data_dir=data_dir, device=device,
+                          progress=progress, on_epoch_end=on_epoch_end, evaluate=evaluate,
+                          t_start=t_start)
+
+
+def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_dir=None,
+                   device: str = "auto", progress: bool = True, on_epoch_end=None,
+                   evaluate: bool = True, t_start: float | None = None) -> dict:
+    """Train the resolved run ``r`` (``resolve_run``) into ``out``: continue it when
+    ``decision`` (``decide_run``) is ``resume``, else start it; returns the summary."""
     import torch
 
     from meshodenet.data import Trajectories
     from meshodenet.train import fit
 
-    t_start = time.time()
+    t_start = time.time() if t_start is None else t_start
     out = Path(out)
-    r = resolve_run(case_id, model_id, preset, data_dir=data_dir, overrides=overrides,
-                    epochs=epochs)
-    case, spec, arrays, mesh, config = r["case"], r["spec"], r["arrays"], r["mesh"], r["config"]
+    case, spec, arrays, mesh = r["case"], r["spec"], r["arrays"], r["mesh"]
+    config = dict(r["config"])
     train_cfg, model_cfg, tr_idx, val_idx = r["train_cfg"], r["model_cfg"], r["tr_idx"], r["val_idx"]
     cfg_path = out / CONFIG_FILE
     test_file = store.data_dir(data_dir) / case.id / "test.npz"
-    if evaluate and test_file.exists():  # every input is checked before the first epoch
-        store.load_split(case, "test", data_dir)
+    resume = decision is not None and decision.action == "resume"
     if resume:
-        from meshodenet.train import CheckpointError, load_checkpoint
-
-        if not (out / "last.pt").exists():
-            raise FileNotFoundError(f"--resume: {out / 'last.pt'} does not exist; run without "
-                                    "--resume to start this run")
-        try:
-            load_checkpoint(out / "last.pt")
-        except CheckpointError as e:
-            raise CheckpointError(f"--resume: {e}; this run cannot continue: start it again "
-                                  f"with `rm -r {out}` and the same command without --resume"
-                                  ) from None
-        try:
-            old = json.loads(cfg_path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise ValueError(f"--resume: {cfg_path} is unreadable ({e}); start the run again "
-                             f"with `rm -r {out}` and the same command without --resume") from None
-        old = with_defaults(old)
-        diffs = [d for d in _diff(old, config) if not d.startswith(("train.epochs:",
-                                                                     "overrides:"))]
-        if diffs:
-            raise ValueError(f"--resume: the configuration differs from {cfg_path}: "
-                             + "; ".join(diffs) + ". Resume with the same settings or choose "
-                             "another --out")
-        config["overrides"] = old["overrides"]
+        config["overrides"] = decision.stored["overrides"]
     elif (out / "last.pt").exists():
         raise ValueError(f"{out} already holds a run; pass --resume to continue it or choose "
                          "another --out")
