@@ -100,7 +100,7 @@ def build(case_id: str, n_graphs: int, frames: int, hidden: int = 128, impl: str
     bench trajectories and a field context for ``n_graphs`` of them."""
     import torch
 
-    from meshodenet.model import MeshODENet, MeshODENetConfig
+    from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
 
     mesh, data, source = mesh_and_data(case_id, n_graphs, frames, dtype)
     torch.manual_seed(0)
@@ -411,7 +411,7 @@ def mgn_bench(case_id: str, impls, rounds: int = 3, log=print) -> dict:
 
     from benchmarks.registry import get_case
     from meshodenet.data import Mesh, Trajectories
-    from meshodenet.mgn import MeshGraphNet, mgn_presets
+    from meshodenet.models.mgn import MeshGraphNet, mgn_presets
 
     case = get_case(case_id)
     arrays, _ = _arrays(case_id, 2, case.n_frames)

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from meshodenet.data import Mesh, Trajectories
-from meshodenet.model import MeshODENet, MeshODENetConfig
+from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
 
 torch.set_num_threads(1)
 
@@ -189,7 +189,7 @@ def test_field_follows_parameter_updates():
 
 # --- MeshGraphNet -------------------------------------------------------------------------------
 def mgn_pair(arrays, config, seed=0):
-    from meshodenet.mgn import MeshGraphNet
+    from meshodenet.models.mgn import MeshGraphNet
 
     data = Trajectories.from_arrays(arrays, dtype=torch.float64)
     models = []
@@ -208,7 +208,7 @@ def mgn_pair(arrays, config, seed=0):
 
 @pytest.mark.parametrize("source", ["tiny", "rod_falling", "plate_cantilever"])
 def test_mgn_one_step_training_and_rollout_match(arrays, source):
-    from meshodenet.mgn import MeshGraphNetConfig
+    from meshodenet.models.mgn import MeshGraphNetConfig
 
     arr = arrays if source == "tiny" else case_arrays(source, n=2, frames=5)
     cfg = MeshGraphNetConfig(hidden=16, layers=3, noise=0.01)

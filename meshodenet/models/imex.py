@@ -1,4 +1,5 @@
-r"""MeshODENet-IMEX: MeshODENet's graph field with the case's linear drag integrated implicitly.
+r"""MeshODENet-IMEX: MeshODENet's graph field with the case's linear drag integrated implicitly;
+its config, presets and model.
 
 Both cases of the paper are strongly damped. The falling rod's Stokes drag relaxes a node's
 velocity at ``gamma = c / m = 2.6e6`` 1/s, so its velocity is slaved to its shape
@@ -41,8 +42,8 @@ from torch.utils.checkpoint import checkpoint
 
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import _Moments
-from meshodenet.model import MeshODENet, MeshODENetConfig, check_fraction, check_nonnegative
-from meshodenet.presets import check_preset, meshodenet_presets
+from meshodenet.models.common import check_fraction, check_int, check_nonnegative, check_preset
+from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig, meshodenet_presets
 
 #: the fields ``ImexConfig`` shares with ``MeshODENetConfig`` (same meaning)
 SHARED_FIELDS = ("hidden", "layers", "mlp_hidden_layers", "activation", "shooting",
@@ -78,9 +79,7 @@ class ImexConfig:
         check_nonnegative("ImexConfig", "release_weight", self.release_weight)
         # MeshODENetConfig checks the shared fields (names, types, ranges)
         self.base()
-        v = self.checkpoint_every
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-            raise ValueError(f"ImexConfig.checkpoint_every must be an int >= 0, got {v!r}")
+        check_int(self, "checkpoint_every", 0)
 
     def base(self) -> MeshODENetConfig:
         return MeshODENetConfig(**{n: getattr(self, n) for n in SHARED_FIELDS})
