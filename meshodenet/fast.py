@@ -20,7 +20,7 @@ the profile):
   gradients in preallocated buffers. The effective weights are differentiable functions of the
   module parameters built once per rollout, so autograd maps their gradients back.
 
-Used by ``MeshODENet`` (``engine = "fast"``, the default) for fixed-step integrators with the
+Used by ``MeshODENet`` (config ``engine = "fast"``, the default) for fixed-step integrators with the
 ``direct`` and ``checkpoint`` gradient modes (same gradient as those, memory of one interval's
 activations) and for rollouts without gradients; ``adjoint`` and ``dopri5`` use the reference
 solvers with this field.
@@ -28,20 +28,7 @@ solvers with this field.
 
 from __future__ import annotations
 
-import os
-
 import torch
-
-ENGINES = ("fast", "reference")
-
-
-def default_engine() -> str:
-    """``$MESHODENET_ENGINE`` (``fast`` or ``reference``), ``fast`` when unset: the reference
-    engine reproduces results computed before the fast path bit for bit."""
-    e = os.environ.get("MESHODENET_ENGINE", "fast")
-    if e not in ENGINES:
-        raise ValueError(f"MESHODENET_ENGINE={e!r}; valid: {', '.join(ENGINES)}")
-    return e
 
 
 # --- activations ------------------------------------------------------------------------------

@@ -55,7 +55,7 @@ def test_rollout_is_the_semi_implicit_scheme_with_equal_gradients(make):
     # against the reference field
     grads = []
     for engine, seg in (("reference", 0), ("fast", 0), ("fast", 2)):
-        model.engine = engine
+        model.config = replace(model.config, engine=engine)
         object.__setattr__(model.config, "checkpoint_every", seg)
         model.zero_grad()
         p, _ = model.rollout(tr.pos[idx, 0], tr.vel[idx, 0], tr.youngs[idx], tr.t)

@@ -121,8 +121,7 @@ def test_gradient_flows_through_the_window():
     fast path and the modules' own forward agree on both."""
     losses, grads = {}, {}
     for engine in ("fast", "reference"):
-        model, data = build(rod_arrays(B=1, T=6), unroll=3)
-        model.engine = engine
+        model, data = build(rod_arrays(B=1, T=6), unroll=3, engine=engine)
         loss = model.training_loss(data, torch.arange(3).repeat(3), torch.Generator())
         loss.backward()
         losses[engine] = loss.detach()

@@ -18,6 +18,15 @@ PAPER_SCHEDULES = {
     "line": {"epochs": 400, "lr_milestones": (100, 200, 300)},
     "triangle": {"epochs": 600, "lr_milestones": (200, 400)},
 }
+#: ``engine`` of a model config: how its network is evaluated, ``fast`` (``meshodenet.fast``,
+#: hand-written forward and backward) or ``reference`` (the modules' own forward,
+#: ``meshodenet.reference``); the same numbers up to float round-off, and ``reference``
+#: reproduces results computed before the fast path bit for bit.
+ENGINES = ("fast", "reference")
+#: ``message_passing`` of a model config: the sum at the receivers in the layers' own forward
+#: (the ``reference`` engine only): ``pyg`` (``torch_geometric.utils.scatter``) or
+#: ``handwritten`` (``index_add_``, the code before PyG).
+MESSAGE_PASSING = ("pyg", "handwritten")
 
 
 def check_preset(preset: str) -> None:
@@ -48,6 +57,12 @@ def check_choice(obj, name: str, valid) -> None:
     if v not in valid:
         raise ValueError(f"{type(obj).__name__}.{name} must be one of "
                          f"{', '.join(sorted(valid))}; got {v!r}")
+
+
+def check_engine(obj) -> None:
+    """``obj.engine`` in ``ENGINES`` and ``obj.message_passing`` in ``MESSAGE_PASSING``."""
+    check_choice(obj, "engine", ENGINES)
+    check_choice(obj, "message_passing", MESSAGE_PASSING)
 
 
 def check_fraction(owner: str, name: str, value) -> None:

@@ -42,13 +42,19 @@ from torch.utils.checkpoint import checkpoint
 
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import _Moments
-from meshodenet.models.common import check_fraction, check_int, check_nonnegative, check_preset
+from meshodenet.models.common import (
+    check_engine,
+    check_fraction,
+    check_int,
+    check_nonnegative,
+    check_preset,
+)
 from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig, meshodenet_presets
 
 #: the fields ``ImexConfig`` shares with ``MeshODENetConfig`` (same meaning)
 SHARED_FIELDS = ("hidden", "layers", "mlp_hidden_layers", "activation", "shooting",
                  "shooting_epochs", "youngs_feature", "rest_position", "release_fraction",
-                 "frame_weight", "release_weight")
+                 "frame_weight", "release_weight", "engine", "message_passing")
 
 
 @dataclass(frozen=True)
@@ -56,7 +62,7 @@ class ImexConfig:
     """Architecture and training horizon of MeshODENet-IMEX (meanings as ``MeshODENetConfig``):
     ``hidden``, ``layers``, ``mlp_hidden_layers``, ``activation``, ``shooting``,
     ``shooting_epochs``, ``youngs_feature``, ``rest_position``, ``release_fraction``,
-    ``frame_weight``, ``release_weight`` (``SHARED_FIELDS``);
+    ``frame_weight``, ``release_weight``, ``engine``, ``message_passing`` (``SHARED_FIELDS``);
     ``checkpoint_every`` steps per recomputed segment in the backward pass (0: keep the whole
     graph; the same gradient either way)."""
 
@@ -72,8 +78,11 @@ class ImexConfig:
     release_fraction: float = 0.0
     frame_weight: float = 0.0
     release_weight: float = 0.0
+    engine: str = "fast"
+    message_passing: str = "pyg"
 
     def __post_init__(self):
+        check_engine(self)
         for name in ("release_fraction", "frame_weight"):
             check_fraction("ImexConfig", name, getattr(self, name))
         check_nonnegative("ImexConfig", "release_weight", self.release_weight)

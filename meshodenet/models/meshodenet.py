@@ -8,8 +8,9 @@ The GNN is encode-process-decode (``meshodenet.layers``) on the normalised featu
 statistics. Clamped nodes get zero velocity and acceleration.
 
 Evaluations and fixed-step rollouts (and their gradients) run on the fast path
-(``meshodenet.fast``, ``engine = "fast"``); ``engine = "reference"`` runs the module-by-module
-definition (``meshodenet.reference``). Same numbers up to float round-off (docs/TRAINING.md).
+(``meshodenet.fast``, config ``engine = "fast"``); ``engine = "reference"`` runs the
+module-by-module definition (``meshodenet.reference``). Same numbers up to float round-off
+(docs/TRAINING.md).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from meshodenet.interface import TrajectoryModel
 from meshodenet.layers import ACTIVATIONS, EncodeProcessDecode
 from meshodenet.models.common import (
     check_choice,
+    check_engine,
     check_fraction,
     check_int,
     check_nonnegative,
@@ -84,6 +86,8 @@ class MeshODENetConfig:
       no-motion loss at that frame; 0 weighs all frames the same (``training_loss``).
     - ``release_weight`` ``lambda >= 0``: adds ``lambda`` times the error of one step from
       frame 0, relative to standing still (``_release_loss``).
+    - ``engine``, ``message_passing``: how the network is evaluated
+      (``meshodenet.models.common.ENGINES``, ``MESSAGE_PASSING``); not the model itself.
 
     Every field beyond the paper's defaults to its behaviour; experiments: docs/TRAINING.md.
     """
@@ -106,8 +110,11 @@ class MeshODENetConfig:
     release_fraction: float = 0.0
     frame_weight: float = 0.0
     release_weight: float = 0.0
+    engine: str = "fast"
+    message_passing: str = "pyg"
 
     def __post_init__(self):
+        check_engine(self)
         check_fraction("MeshODENetConfig", "release_fraction", self.release_fraction)
         check_fraction("MeshODENetConfig", "frame_weight", self.frame_weight)
         check_nonnegative("MeshODENetConfig", "release_weight", self.release_weight)
@@ -190,9 +197,6 @@ class MeshODENet(TrajectoryModel):
     """
 
     name = "meshodenet"
-    #: ``"fast"`` (``meshodenet.fast``) or ``"reference"`` (``meshodenet.reference``): same
-    #: numbers up to float round-off; not part of the config or the checkpoint.
-    engine = fast.default_engine()
 
     def __init__(self, mesh: Mesh, config: MeshODENetConfig, train: Trajectories | None = None,
                  hinges=None):
@@ -206,8 +210,15 @@ class MeshODENet(TrajectoryModel):
             self.stats.compute(self.topology, train)
         self.gnn = EncodeProcessDecode(
             n_node_features(self.kind, config.rest_position), EDGE_STATIC + EDGE_DYNAMIC, 3, config.hidden,
-            config.layers, config.mlp_hidden_layers, config.activation, layer_norm=False)
+            config.layers, config.mlp_hidden_layers, config.activation, layer_norm=False,
+            message_passing=config.message_passing)
         self.nfe = 0
+
+    @property
+    def engine(self) -> str:
+        """The config's ``engine``: ``fast`` (``meshodenet.fast``) or ``reference``
+        (``meshodenet.reference``)."""
+        return self.config.engine
 
     # --- the vector field -------------------------------------------------------------------
     def field_context(self, youngs: torch.Tensor, dtype=None) -> FieldContext:

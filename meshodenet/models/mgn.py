@@ -59,7 +59,13 @@ from meshodenet.features import (
 from meshodenet.graph import GraphTopology
 from meshodenet.interface import TrajectoryModel
 from meshodenet.layers import ACTIVATIONS, EncodeProcessDecode, InteractionLayer
-from meshodenet.models.common import check_choice, check_int, check_preset, paper_train_config
+from meshodenet.models.common import (
+    check_choice,
+    check_engine,
+    check_int,
+    check_preset,
+    paper_train_config,
+)
 from meshodenet.train import TrainConfig
 
 DT_RTOL = 1e-3  # frames closer than this to uniform spacing count as uniform
@@ -81,6 +87,8 @@ class MeshGraphNetConfig:
     - ``acc_norm``: ``component`` normalises the target acceleration per component; ``vector``
       with one std for the vector (the root mean square of the moving components' stds), so
       that isotropic training noise weighs the same in every direction of the loss.
+    - ``engine``, ``message_passing``: how the network is evaluated
+      (``meshodenet.models.common.ENGINES``, ``MESSAGE_PASSING``); not the model itself.
     """
 
     hidden: int = 128
@@ -92,8 +100,11 @@ class MeshGraphNetConfig:
     youngs_feature: str = "linear"
     rest_position: bool = False
     acc_norm: str = "component"
+    engine: str = "fast"
+    message_passing: str = "pyg"
 
     def __post_init__(self):
+        check_engine(self)
         if self.acc_norm not in ("component", "vector"):
             raise ValueError(f"MeshGraphNetConfig.acc_norm must be 'component' or 'vector', got "
                              f"{self.acc_norm!r}")
@@ -130,11 +141,11 @@ class MeshGraphNetwork(EncodeProcessDecode):
     decoder. Shapes: as ``EncodeProcessDecode``."""
 
     def __init__(self, d_node: int, d_edge: int, d_out: int, hidden: int, n_layers: int,
-                 mlp_hidden_layers: int, activation: str):
+                 mlp_hidden_layers: int, activation: str, message_passing: str = "pyg"):
         super().__init__(d_node, d_edge, d_out, hidden, 0, mlp_hidden_layers, activation,
                          layer_norm=True)
         self.processor = nn.ModuleList(
-            GraphNetBlock(hidden, mlp_hidden_layers, activation, layer_norm=True)
+            GraphNetBlock(hidden, mlp_hidden_layers, activation, True, message_passing)
             for _ in range(n_layers))
 
 
@@ -179,9 +190,6 @@ class MeshGraphNet(TrajectoryModel):
     """
 
     name = "mgn"
-    #: ``"fast"`` (``meshodenet.fast.FastGNN``: split weights, static features folded) or
-    #: ``"reference"`` (the modules' own forward): same numbers up to float round-off.
-    engine = fast.default_engine()
 
     def __init__(self, mesh: Mesh, config: MeshGraphNetConfig, train: Trajectories | None = None,
                  hinges=None):
@@ -197,9 +205,15 @@ class MeshGraphNet(TrajectoryModel):
         self.gnn = MeshGraphNetwork(n_node_features(self.kind, config.rest_position),
                                     EDGE_STATIC + EDGE_DYNAMIC, 3,
                                     config.hidden, config.layers, config.mlp_hidden_layers,
-                                    config.activation)
+                                    config.activation, config.message_passing)
         self.diverged: dict = {}
         self._fast_held = None
+
+    @property
+    def engine(self) -> str:
+        """The config's ``engine``: ``fast`` (``meshodenet.fast.FastGNN``: split weights, static
+        features folded) or ``reference`` (the modules' own forward)."""
+        return self.config.engine
 
     @torch.no_grad()
     def _compute_stats(self, train: Trajectories) -> None:
