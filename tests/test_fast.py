@@ -1,7 +1,8 @@
-"""The fast path (``meshodenet.fast``) against the reference implementation
-(``meshodenet.reference``) in float64: vector field, its gradients, whole rollouts and their
-gradients, on the tiny rod and strip, the rod of ``rod_falling`` (batched) and the plate of the
-registered ``plate_cantilever`` case, for several architectures and integrators."""
+"""The fast path (``meshodenet.network``, ``meshodenet.fast``) against the reference
+implementation (``meshodenet.reference``) in float64: vector field, its gradients, whole
+rollouts and their gradients, on the tiny rod and strip, the rod of ``rod_falling``
+(batched) and the plate of the registered ``plate_cantilever`` case, for several
+architectures and integrators."""
 
 from __future__ import annotations
 

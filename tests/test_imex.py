@@ -137,6 +137,7 @@ def test_registered_trains_resumes_and_reloads(tmp_path):
 def test_rest_position_feature_fast_equals_reference(make):
     from meshodenet import fast
     from meshodenet.models.meshodenet import MeshODENet
+    from meshodenet.network import FastField
 
     arrays = make()
     mesh, tr = Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays, dtype=torch.float64)
@@ -147,7 +148,7 @@ def test_rest_position_feature_fast_equals_reference(make):
     assert ctx.node_static.shape[1] == (1 if mesh.kind == "line" else 3) + 3
     z = torch.stack([tr.pos[:2, 2].reshape(-1, 3), tr.vel[:2, 2].reshape(-1, 3)])
     want = reference.vector_field(model, z, ctx)
-    got = fast.evaluate(fast.FastField(model, ctx), z)
+    got = fast.evaluate(FastField(model, ctx), z)
     assert torch.allclose(got, want, rtol=1e-10, atol=1e-12 * float(want.abs().max()))
     # the rest coordinates are what the static features hold (normalised)
     s = ctx.node_static[:, -3:] * model.stats.node.std[ctx.node_static.shape[1] - 3:

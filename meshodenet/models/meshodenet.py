@@ -45,6 +45,7 @@ from meshodenet.models.common import (
     check_preset,
     paper_train_config,
 )
+from meshodenet.network import FastField
 from meshodenet.train import TrainConfig
 
 
@@ -231,14 +232,14 @@ class MeshODENet(TrajectoryModel):
         ``field_fn``.)"""
         if self.engine == "reference":
             return reference.vector_field(self, z, ctx)
-        return fast.evaluate(fast.FastField(self, ctx), z)
+        return fast.evaluate(FastField(self, ctx), z)
 
     def field_fn(self, ctx: FieldContext):
         """``z -> dz/dt`` on ``ctx`` with everything that does not depend on ``z`` built once;
         valid while the parameters do not change (rollouts and the solvers use it)."""
         if self.engine == "reference":
             return lambda z: reference.vector_field(self, z, ctx)
-        field = fast.FastField(self, ctx)
+        field = FastField(self, ctx)
         return lambda z: fast.evaluate(field, z)
 
     def forward(self, z: torch.Tensor, ctx: FieldContext) -> torch.Tensor:
@@ -255,7 +256,7 @@ class MeshODENet(TrajectoryModel):
         if scheme.adaptive or (c.grad_mode == "adjoint" and torch.is_grad_enabled()):
             f = self.field_fn(ctx)
             return reference.integrate(self, z0, t, ctx, field=lambda model, z, ctx_: f(z))
-        return fast.rollout(fast.FastField(self, ctx), scheme, z0, t, c.substeps)
+        return fast.rollout(FastField(self, ctx), scheme, z0, t, c.substeps)
 
     # --- TrajectoryModel ----------------------------------------------------------------------
     def rollout(self, x0, v0, youngs, t):

@@ -42,7 +42,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import nn
 
-from meshodenet import fast
+from meshodenet import network
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import (
     EDGE_DYNAMIC,
@@ -211,7 +211,7 @@ class MeshGraphNet(TrajectoryModel):
 
     @property
     def engine(self) -> str:
-        """The config's ``engine``: ``fast`` (``meshodenet.fast.FastGNN``: split weights, static
+        """The config's ``engine``: ``fast`` (``meshodenet.network.FastGNN``: split weights, static
         features folded) or ``reference`` (the modules' own forward)."""
         return self.config.engine
 
@@ -237,9 +237,9 @@ class MeshGraphNet(TrajectoryModel):
                              dt=float(self.dt))
 
     def forward(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext,
-                gnn: fast.FastGNN | None = None) -> torch.Tensor:
+                gnn: network.FastGNN | None = None) -> torch.Tensor:
         """Normalised acceleration ``(M, 3)`` from positions ``x, x_prev (M, 3)`` of frames
-        ``k`` and ``k - 1``. ``gnn``: a ``fast.FastGNN`` of ``ctx`` to reuse (a training loss
+        ``k`` and ``k - 1``. ``gnn``: a ``network.FastGNN`` of ``ctx`` to reuse (a training loss
         that steps several times within one backward pass builds it once)."""
         b = ctx.batch
         v = (x - x_prev) / ctx.dt * b.free
@@ -250,16 +250,16 @@ class MeshGraphNet(TrajectoryModel):
             gnn = self._fast_gnn(ctx)
         return gnn(dynamic_node_features(x, v, b, ctx.kind), dynamic_edge_features(x, b))
 
-    def _fast_gnn(self, ctx: StepContext) -> fast.FastGNN:
-        """``fast.FastGNN`` of ``ctx``: the one ``rollout`` built for its context (parameters
+    def _fast_gnn(self, ctx: StepContext) -> network.FastGNN:
+        """``network.FastGNN`` of ``ctx``: the one ``rollout`` built for its context (parameters
         do not change during a rollout), else a new one."""
         held = self._fast_held
         if held is not None and held[0] is ctx and not torch.is_grad_enabled():
             return held[1]
-        return fast.FastGNN(self.gnn, ctx)
+        return network.FastGNN(self.gnn, ctx)
 
     def step(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext,
-             gnn: fast.FastGNN | None = None) -> torch.Tensor:
+             gnn: network.FastGNN | None = None) -> torch.Tensor:
         """Positions of frame ``k + 1``: ``2 x - x_prev + a dt^2``, clamped nodes held."""
         a = self(x, x_prev, ctx, gnn) * ctx.acc_std + ctx.acc_mean
         x_next = 2 * x - x_prev + a * ctx.dt ** 2
@@ -283,7 +283,7 @@ class MeshGraphNet(TrajectoryModel):
         ctx = self.context(youngs, x0.dtype)
         try:
             if self.engine == "fast" and not torch.is_grad_enabled():
-                self._fast_held = (ctx, fast.FastGNN(self.gnn, ctx))
+                self._fast_held = (ctx, network.FastGNN(self.gnn, ctx))
             return self._rollout(x0, v0, t, ctx)
         finally:
             self._fast_held = None
