@@ -53,13 +53,15 @@ def _linears(seq) -> list:
 # --- features ---------------------------------------------------------------------------------
 class RodAngles:
     """``[cos a, sin a]`` per node ``(M, 2)`` of rods (line meshes) at positions ``x (M, 3)``:
-    the turning angle ``a`` at every hinge ``p -> i -> q`` (``meshodenet.features``), ``(1, 0)``
-    off hinges; and its backward pass. The only code of the network that knows mesh kinds."""
+    the signed turning angle ``a`` at every hinge ``p -> i -> q``, ``cos a = e1.e2 / (|e1||e2|)``,
+    ``sin a = (e1 x e2).z / (|e1||e2|)``, ``e1 = x_i - x_p``, ``e2 = x_q - x_i``; ``(1, 0)`` off
+    hinges (``meshodenet.features``). Its forward is differentiated by autograd (MeshGraphNet,
+    the module code) or by ``backward`` (MeshODENet's field). The only code of the network
+    that knows mesh kinds."""
 
     def __init__(self, hinges: torch.Tensor, n_nodes: int, dtype, device):
+        self.p, self.i, self.q = hinges[:, 0], hinges[:, 1], hinges[:, 2]
         self.all = hinges.t().reshape(-1)
-        self.mid = hinges[:, 1]
-        self.H = len(hinges)
         base = torch.zeros(n_nodes, 2, dtype=dtype, device=device)
         base[:, 0] = 1.0
         self.base = base
@@ -68,38 +70,34 @@ class RodAngles:
         rot[1, 3], rot[0, 4] = 1.0, -1.0
         self.rot = rot
 
-    def forward(self, x, tape):
-        if not self.H:
-            return self.base
-        xh = x.index_select(0, self.all).view(3, self.H, 3)
-        e = xh[1:] - xh[:-1]  # (2, H, 3): e1, e2
-        n = e.norm(dim=-1)  # (2, H)
-        r = (n[0] * n[1]).clamp_min(1e-30)
-        e2r = torch.mm(e[1], self.rot).view(self.H, 2, 3)
-        num = (e[0].unsqueeze(1) * e2r).sum(-1)  # (H, 2): dot, cross_z
-        cs_h = num / r.unsqueeze(1)
+    def forward(self, x, tape=None):
+        p, i, q = self.p, self.i, self.q
+        e1, e2 = x[i] - x[p], x[q] - x[i]
+        n1, n2 = e1.norm(dim=-1), e2.norm(dim=-1)
+        r = (n1 * n2).clamp_min(1e-30)
+        cos = (e1 * e2).sum(-1) / r
+        sin = (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) / r
+        cs_h = torch.stack([cos, sin], dim=-1)
         if tape is not None:
-            tape += [e, n, r, e2r, cs_h]
-        return self.base.index_copy(0, self.mid, cs_h)
+            tape += [e1, e2, n1, n2, r, cs_h]
+        return self.base.index_copy(0, i, cs_h)
 
     def backward(self, tape, g_cs, g_x) -> None:
         """Adds into ``g_x`` the gradient w.r.t. ``x`` of the angles whose gradient is
         ``g_cs (M, 2)`` (pops what ``forward`` put on ``tape``)."""
-        if not self.H:
-            return
-        cs_h, e2r, r, n, e = tape.pop(), tape.pop(), tape.pop(), tape.pop(), tape.pop()
-        g_cs = g_cs.index_select(0, self.mid)  # (H, 2)
+        cs_h, r, n2, n1, e2, e1 = (tape.pop() for _ in range(6))
+        H = len(cs_h)
+        g_cs = g_cs.index_select(0, self.i)  # (H, 2)
         g_num = g_cs / r.unsqueeze(1)
         g_r = -(g_cs * cs_h).sum(-1) / r  # (hinges with |e1||e2| < 1e-30: not masked)
-        e1, e2 = e[0], e[1]
         # num = [e1.e2, e1.rot(e2)], rot(e2) = (e2_y, -e2_x, 0)
+        e2r = torch.mm(e2, self.rot).view(H, 2, 3)
         g_e1 = (g_num.unsqueeze(-1) * e2r).sum(1)
         ge_rot = g_num[:, 1:2] * e1  # gradient w.r.t. rot(e2), mapped back by rot^T
         g_e2 = g_num[:, :1] * e1 + torch.mm(ge_rot, self.rot[:, 3:].t())
         # r = n1 n2, dn/de = e / n
-        n1, n2 = n[0].clamp_min(1e-300), n[1].clamp_min(1e-300)
-        g_e1 = g_e1 + (g_r * n[1] / n1).unsqueeze(1) * e1
-        g_e2 = g_e2 + (g_r * n[0] / n2).unsqueeze(1) * e2
+        g_e1 = g_e1 + (g_r * n2 / n1.clamp_min(1e-300)).unsqueeze(1) * e1
+        g_e2 = g_e2 + (g_r * n1 / n2.clamp_min(1e-300)).unsqueeze(1) * e2
         ge = torch.stack([-g_e1, g_e1 - g_e2, g_e2]).view(-1, 3)
         g_x.index_add_(0, self.all, ge)
 
@@ -416,8 +414,7 @@ class FastGNN:
         self.M = b.n_nodes
         self.receivers = b.receivers
         self.idx_sr = torch.cat([2 * b.senders, 2 * b.receivers + 1])
-        self.node_mean, self.node_std = ctx.node_mean, ctx.node_std
-        self.edge_mean, self.edge_std = ctx.edge_mean, ctx.edge_std
+        self.features = Features(ctx, fused_load=False)
         self.node_enc = self._mlp(gnn.node_encoder, ctx.node_static)
         self.edge_enc = self._mlp(gnn.edge_encoder, ctx.edge_static)
         self.blocks = []
@@ -461,10 +458,11 @@ class FastGNN:
                                                ln.eps)
         return x
 
-    def __call__(self, node_dyn, edge_dyn):
-        """Decoder output ``(M, d_out)`` from the raw dynamic node and edge features."""
-        h = self._run(self.node_enc, (node_dyn - self.node_mean) / self.node_std)
-        e = self._run(self.edge_enc, (edge_dyn - self.edge_mean) / self.edge_std)
+    def __call__(self, x, v):
+        """Decoder output ``(M, d_out)`` at positions ``x`` and velocities ``v`` ``(M, 3)``."""
+        node_in, edge_in = self.features.forward(x, v)
+        h = self._run(self.node_enc, node_in)
+        e = self._run(self.edge_enc, edge_in)
         M = self.M
         for (we, wsr, bsr), rest_e, ln_e, (wh, wa, bn), rest_n, ln_n, d in self.blocks:
             g = torch.addmm(bsr, h, wsr).view(2 * M, d).index_select(0, self.idx_sr)

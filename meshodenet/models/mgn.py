@@ -51,8 +51,6 @@ from meshodenet.features import (
     GraphContext,
     check_rest_position,
     check_youngs_feature,
-    dynamic_edge_features,
-    dynamic_node_features,
     graph_context,
     n_node_features,
 )
@@ -248,7 +246,7 @@ class MeshGraphNet(TrajectoryModel):
             return self.gnn(node_in, edge_in, b.senders, b.receivers)
         if gnn is None:
             gnn = self._fast_gnn(ctx)
-        return gnn(dynamic_node_features(x, v, b, ctx.kind), dynamic_edge_features(x, b))
+        return gnn(x, v)
 
     def _fast_gnn(self, ctx: StepContext) -> network.FastGNN:
         """``network.FastGNN`` of ``ctx``: the one ``rollout`` built for its context (parameters
