@@ -22,6 +22,8 @@ so that it runs faster, with the same numbers up to float round-off (tested in f
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 
 
@@ -163,27 +165,38 @@ class Features:
         return g_x
 
 
-# --- MeshODENet's vector field -----------------------------------------------------------------
-class FastField:
-    """The vector field of ``model`` on one ``GraphContext``, ready to be evaluated many times.
+# --- the network -------------------------------------------------------------------------------
+class Network:
+    """``EncodeProcessDecode`` ``gnn`` (``meshodenet.layers``; its ``GraphNetBlock`` and
+    LayerNorm variant for MeshGraphNet) on one ``GraphContext``: the features and the
+    forward pass on effective weights built once.
 
-    ``params`` is the list of effective weights (differentiable functions of the model's
-    parameters when autograd records); ``layout`` says where each MLP's weights sit in it.
+    ``params`` is the list of effective weights; ``node_enc``, ``edge_enc``, ``decoder`` (lists
+    of ``(w, b)`` indices into it) and ``layers`` say where each MLP's weights sit.
+    ``output``: ``(std, mean)`` folded into the decoder's last layer (``y std + mean``), or
+    ``None``. ``detach``: the weights detached from the module's parameters (a hand-written
+    backward maps their gradients back, ``sources``) or differentiable functions of them
+    (autograd). ``fused_load``: as ``Features``.
     """
 
-    def __init__(self, model, ctx):
-        gnn = model.gnn
-        self.act = model.config.activation
+    def __init__(self, gnn, ctx, activation: str, *, output=None, detach: bool = True,
+                 fused_load: bool = True):
+        self.act = activation
         b = ctx.batch
         self.M, self.D = b.n_nodes, len(b.senders)
         self.free = b.free
         self.senders, self.receivers = b.senders, b.receivers
         self.idx_sr = torch.cat([2 * b.senders, 2 * b.receivers + 1])
-        self.features = Features(ctx)
-        self.model = model
+        self.features = Features(ctx, fused_load)
+        self.aggregate_updated = [getattr(layer, "aggregate_updated_edges", True)
+                                  for layer in gnn.processor]
+        ln = lambda seq: seq[-1] if isinstance(seq[-1], torch.nn.LayerNorm) else None
+        self.node_enc_ln, self.edge_enc_ln = ln(gnn.node_encoder), ln(gnn.edge_encoder)
+        self.layer_norms = [(ln(layer.edge_mlp), ln(layer.node_mlp)) for layer in gnn.processor]
         P: list = []
         self.sources: list = []  # the module tensors the effective weights are made of
         maps: list = []  # (source index, fn(G) -> its gradient)
+        D = (lambda t: t.detach()) if detach else (lambda t: t)
 
         def add(t):
             P.append(t)
@@ -194,7 +207,7 @@ class FastField:
             return len(self.sources) - 1
 
         def plain(lin):
-            w, b = add(lin.weight.detach().t()), add(lin.bias.detach())
+            w, b = add(D(lin.weight).t()), add(D(lin.bias))
             maps.append((src(lin.weight), lambda G, w=w: G[w].t()))
             maps.append((src(lin.bias), lambda G, b=b: G[b]))
             return w, b
@@ -203,7 +216,7 @@ class FastField:
             """First layer on ``[static | dynamic]``: ``W_d f + c``, ``c = W_s static + b``."""
             lins = _linears(seq)
             n = static.shape[1]
-            W, bias = lins[0].weight.detach(), lins[0].bias.detach()
+            W, bias = D(lins[0].weight), D(lins[0].bias)
             w, c = add(W[:, n:].t()), add(torch.addmm(bias, static, W[:, :n].t()))
             maps.append((src(lins[0].weight),
                          lambda G: torch.cat([G[c].t() @ static, G[w].t()], 1)))
@@ -211,31 +224,33 @@ class FastField:
             return [(w, c)] + [plain(lin) for lin in lins[1:]]
 
         def decoder(seq):
-            """Last layer followed by the acceleration de-normalisation ``y s + m``."""
+            """Last layer followed by the de-normalisation ``y s + m`` (with ``output``)."""
             lins = _linears(seq)
+            if output is None:
+                return [plain(lin) for lin in lins]
             out = [plain(lin) for lin in lins[:-1]]
-            s_, m_ = ctx.acc_std, ctx.acc_mean
-            W, bias = lins[-1].weight.detach(), lins[-1].bias.detach()
+            s_, m_ = output
+            W, bias = D(lins[-1].weight), D(lins[-1].bias)
             w, b = add((W * s_[:, None]).t()), add(bias * s_ + m_)
             maps.append((src(lins[-1].weight), lambda G: G[w].t() * s_[:, None]))
             maps.append((src(lins[-1].bias), lambda G: G[b] * s_))
             return out + [(w, b)]
 
-        with torch.no_grad():
+        with torch.no_grad() if detach else contextlib.nullcontext():
             self.node_enc = encoder(gnn.node_encoder, ctx.node_static)
             self.edge_enc = encoder(gnn.edge_encoder, ctx.edge_static)
             self.layers = []
             for layer in gnn.processor:
                 el, nl = _linears(layer.edge_mlp), _linears(layer.node_mlp)
                 d = el[0].weight.shape[0]
-                W1, b1 = el[0].weight.detach(), el[0].bias.detach()
+                W1, b1 = D(el[0].weight), D(el[0].bias)
                 we, wsr = add(W1[:, :d].t()), add(torch.cat([W1[:, d:2 * d], W1[:, 2 * d:]]).t())
                 bsr = add(torch.cat([b1, torch.zeros_like(b1)]))
                 maps.append((src(el[0].weight), lambda G, we=we, wsr=wsr, d=d: torch.cat(
                     [G[we].t(), G[wsr].t()[:d], G[wsr].t()[d:]], 1)))
                 maps.append((src(el[0].bias), lambda G, bsr=bsr, d=d: G[bsr][:d]))
-                Wn = nl[0].weight.detach()
-                wh, wa, bn = add(Wn[:, :d].t()), add(Wn[:, d:].t()), add(nl[0].bias.detach())
+                Wn = D(nl[0].weight)
+                wh, wa, bn = add(Wn[:, :d].t()), add(Wn[:, d:].t()), add(D(nl[0].bias))
                 maps.append((src(nl[0].weight),
                              lambda G, wh=wh, wa=wa: torch.cat([G[wh].t(), G[wa].t()], 1)))
                 maps.append((src(nl[0].bias), lambda G, bn=bn: G[bn]))
@@ -244,8 +259,73 @@ class FastField:
                 self.layers.append(((we, wsr, bsr), rest_e, (wh, wa, bn), rest_n, d))
             self.decoder = decoder(gnn.decoder)
             self.params = P
-            self.PT = [p.t() if p.dim() == 2 else None for p in P]
         self._maps = maps
+
+    def _mlp_fwd(self, P, layers, x, pre0, tape, ln=None):
+        """Layers ``layers`` from input ``x`` (or from the first pre-activation ``pre0``),
+        then the LayerNorm ``ln`` when given."""
+        n = len(layers)
+        for k, (w, b) in enumerate(layers):
+            if k == 0 and pre0 is not None:
+                pre = pre0
+            else:
+                if tape is not None:
+                    tape.append(x)
+                pre = torch.addmm(P[b], x, P[w])
+            if k < n - 1:
+                x, saved = _act_fwd(self.act, pre)
+                if tape is not None:
+                    tape.append(saved)
+            else:
+                x = pre
+        if ln is not None:
+            x = torch.nn.functional.layer_norm(x, ln.normalized_shape, ln.weight, ln.bias, ln.eps)
+        return x
+
+    def network(self, P, F, Fe, tape=None):
+        """Decoder output ``(M, d_out)`` from the normalised dynamic features ``F, Fe``
+        (``Features.forward``); when ``tape`` (a list) is given, what the backward pass needs
+        is appended to it."""
+        h = self._mlp_fwd(P, self.node_enc, F, None, tape, self.node_enc_ln)
+        e = self._mlp_fwd(P, self.edge_enc, Fe, None, tape, self.edge_enc_ln)
+        M = self.M
+        for k, (e_first, rest_e, n_first, rest_n, d) in enumerate(self.layers):
+            ln_e, ln_n = self.layer_norms[k]
+            we, wsr, bsr = e_first
+            hsr = torch.addmm(P[bsr], h, P[wsr]).view(2 * M, d)
+            g = hsr.index_select(0, self.idx_sr).view(2, -1, d)
+            pre = torch.addmm(g[0] + g[1], e, P[we])
+            if tape is not None:
+                tape += [h, e]
+            m = self._mlp_fwd(P, [(None, None)] + rest_e, None, pre, tape, ln_e)
+            if self.aggregate_updated[k]:  # the nodes sum e + m (InteractionLayer)
+                e = e + m
+                agg = e.new_zeros(M, d).index_add_(0, self.receivers, e)
+            else:  # the nodes sum m (GraphNetBlock)
+                agg = m.new_zeros(M, d).index_add_(0, self.receivers, m)
+            wh, wa, bn = n_first
+            pre = torch.addmm(torch.addmm(P[bn], h, P[wh]), agg, P[wa])
+            if tape is not None:
+                tape.append(agg)
+            h = h + self._mlp_fwd(P, [(None, None)] + rest_n, None, pre, tape, ln_n)
+            if not self.aggregate_updated[k]:
+                e = e + m
+        return self._mlp_fwd(P, self.decoder, h, None, tape)
+
+
+# --- MeshODENet's vector field -----------------------------------------------------------------
+class FastField(Network):
+    """The vector field of MeshODENet ``model`` on one ``GraphContext``, ready to be evaluated
+    many times, with its hand-written backward pass (``Network`` with the acceleration
+    de-normalisation folded into the decoder and detached weights)."""
+
+    def __init__(self, model, ctx):
+        super().__init__(model.gnn, ctx, model.config.activation,
+                         output=(ctx.acc_std, ctx.acc_mean))
+        # the backward pass is written for InteractionLayers without LayerNorm
+        assert all(self.aggregate_updated) and self.node_enc_ln is None
+        self.model = model
+        self.PT = [p.t() if p.dim() == 2 else None for p in self.params]
         self._pending: dict = {}
 
     def requires_grad(self) -> bool:
@@ -293,49 +373,13 @@ class FastField:
         self._pending = {}
 
     # --- forward ----------------------------------------------------------------------------
-    def _mlp_fwd(self, P, layers, x, pre0, tape):
-        """Layers ``layers`` from input ``x`` (or from the first pre-activation ``pre0``)."""
-        n = len(layers)
-        for k, (w, b) in enumerate(layers):
-            if k == 0 and pre0 is not None:
-                pre = pre0
-            else:
-                if tape is not None:
-                    tape.append(x)
-                pre = torch.addmm(P[b], x, P[w])
-            if k < n - 1:
-                x, saved = _act_fwd(self.act, pre)
-                if tape is not None:
-                    tape.append(saved)
-            else:
-                x = pre
-        return x
-
     def forward(self, P, z, tape=None):
         """``dz/dt`` ``(2, M, 3)`` for ``z = [x, v]``; when ``tape`` (a list) is given, what the
         backward pass needs is appended to it."""
         x, v = z[0], z[1]
         vf = v * self.free
         F, Fe = self.features.forward(x, vf, tape)
-        h = self._mlp_fwd(P, self.node_enc, F, None, tape)
-        e = self._mlp_fwd(P, self.edge_enc, Fe, None, tape)
-        M = self.M
-        for e_first, rest_e, n_first, rest_n, d in self.layers:
-            we, wsr, bsr = e_first
-            hsr = torch.addmm(P[bsr], h, P[wsr]).view(2 * M, d)
-            g = hsr.index_select(0, self.idx_sr).view(2, -1, d)
-            pre = torch.addmm(g[0] + g[1], e, P[we])
-            if tape is not None:
-                tape += [h, e]
-            m = self._mlp_fwd(P, [(None, None)] + rest_e, None, pre, tape)
-            e = e + m
-            agg = e.new_zeros(M, d).index_add_(0, self.receivers, e)
-            wh, wa, bn = n_first
-            pre = torch.addmm(torch.addmm(P[bn], h, P[wh]), agg, P[wa])
-            if tape is not None:
-                tape.append(agg)
-            h = h + self._mlp_fwd(P, [(None, None)] + rest_n, None, pre, tape)
-        a = self._mlp_fwd(P, self.decoder, h, None, tape) * self.free
+        a = self.network(P, F, Fe, tape) * self.free
         return torch.stack([vf, a])
 
     # --- backward ---------------------------------------------------------------------------
@@ -398,79 +442,16 @@ class FastField:
 DEFER_MAX_ROWS = 256
 
 
-# --- MeshGraphNet: the same network changes, with autograd ---------------------------------------
-class FastGNN:
-    """``EncodeProcessDecode`` with ``GraphNetBlock``s (MeshGraphNet) on one ``GraphContext``,
-    evaluated with autograd (its one-step training needs few evaluations of large batches, so
-    the backward pass is left to autograd) but with the changes of ``FastField``: the
-    normalised static features folded into the encoders' first layers, split weight matrices
-    instead of the concatenations ``[e, h_i, h_j]`` and ``[h, sum m]`` (the sender and receiver
-    parts computed on the nodes and gathered with one index). Same numbers as the module path
-    up to float round-off (``tests/test_fast.py``). Build it once per context and set of
-    parameter values; its weights are differentiable functions of the module's parameters."""
+# --- MeshGraphNet's step ---------------------------------------------------------------------
+class FastGNN(Network):
+    """MeshGraphNet's network (``GraphNetBlock``s, LayerNorm) on one ``GraphContext``,
+    evaluated with autograd: its one-step training needs few evaluations of large batches, so
+    the backward pass is left to autograd. The weights are differentiable functions of the
+    module's parameters: build it once per context and set of parameter values."""
 
-    def __init__(self, gnn, ctx):
-        b = ctx.batch
-        self.M = b.n_nodes
-        self.receivers = b.receivers
-        self.idx_sr = torch.cat([2 * b.senders, 2 * b.receivers + 1])
-        self.features = Features(ctx, fused_load=False)
-        self.node_enc = self._mlp(gnn.node_encoder, ctx.node_static)
-        self.edge_enc = self._mlp(gnn.edge_encoder, ctx.edge_static)
-        self.blocks = []
-        for blk in gnn.processor:
-            (W1, b1), *rest_e = self._mlp(blk.edge_mlp)[0]
-            d = W1.shape[1]
-            W1 = W1.t()  # (out, 3d) of the module
-            first_e = (W1[:, :d].t(), torch.cat([W1[:, d:2 * d], W1[:, 2 * d:]]).t(),
-                       torch.cat([b1, torch.zeros_like(b1)]))
-            (Wn, bn), *rest_n = self._mlp(blk.node_mlp)[0]
-            Wn = Wn.t()
-            first_n = (Wn[:, :d].t(), Wn[:, d:].t(), bn)
-            self.blocks.append((first_e, rest_e, self._mlp(blk.edge_mlp)[1], first_n, rest_n,
-                                self._mlp(blk.node_mlp)[1], d))
-        self.decoder = self._mlp(gnn.decoder)
-        self.act = next((m for m in gnn.decoder if not isinstance(m, (torch.nn.Linear,
-                                                                      torch.nn.LayerNorm))),
-                        torch.nn.Identity())
-
-    @staticmethod
-    def _mlp(seq, static=None):
-        """``([(W^T, b), ...], layer_norm or None)``; with ``static``, the first layer acts on
-        the dynamic features only, with the per-row bias ``W_s static + b``."""
-        lins = _linears(seq)
-        layers = [(m.weight.t(), m.bias) for m in lins]
-        if static is not None:
-            n = static.shape[1]
-            W, bias = lins[0].weight, lins[0].bias
-            layers[0] = (W[:, n:].t(), torch.addmm(bias, static, W[:, :n].t()))
-        ln = seq[-1] if isinstance(seq[-1], torch.nn.LayerNorm) else None
-        return layers, ln
-
-    def _run(self, mlp, x, pre=None):
-        layers, ln = mlp
-        for k, (Wt, bias) in enumerate(layers):
-            if k > 0 or pre is None:
-                pre = torch.addmm(bias, x, Wt)
-            x = self.act(pre) if k < len(layers) - 1 else pre
-        if ln is not None:
-            x = torch.nn.functional.layer_norm(x, ln.normalized_shape, ln.weight, ln.bias,
-                                               ln.eps)
-        return x
+    def __init__(self, gnn, ctx, activation: str):
+        super().__init__(gnn, ctx, activation, detach=False, fused_load=False)
 
     def __call__(self, x, v):
         """Decoder output ``(M, d_out)`` at positions ``x`` and velocities ``v`` ``(M, 3)``."""
-        node_in, edge_in = self.features.forward(x, v)
-        h = self._run(self.node_enc, node_in)
-        e = self._run(self.edge_enc, edge_in)
-        M = self.M
-        for (we, wsr, bsr), rest_e, ln_e, (wh, wa, bn), rest_n, ln_n, d in self.blocks:
-            g = torch.addmm(bsr, h, wsr).view(2 * M, d).index_select(0, self.idx_sr)
-            g = g.view(2, -1, d)
-            first = [(None, None)] + rest_e
-            m = self._run((first, ln_e), None, torch.addmm(g[0] + g[1], e, we))
-            agg = m.new_zeros(M, d).index_add_(0, self.receivers, m)
-            pre = torch.addmm(torch.addmm(bn, h, wh), agg, wa)
-            h = h + self._run(([(None, None)] + rest_n, ln_n), None, pre)
-            e = e + m
-        return self._run(self.decoder, h)
+        return self.network(self.params, *self.features.forward(x, v))

@@ -254,7 +254,7 @@ class MeshGraphNet(TrajectoryModel):
         held = self._fast_held
         if held is not None and held[0] is ctx and not torch.is_grad_enabled():
             return held[1]
-        return network.FastGNN(self.gnn, ctx)
+        return network.FastGNN(self.gnn, ctx, self.config.activation)
 
     def step(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext,
              gnn: network.FastGNN | None = None) -> torch.Tensor:
@@ -281,7 +281,7 @@ class MeshGraphNet(TrajectoryModel):
         ctx = self.context(youngs, x0.dtype)
         try:
             if self.engine == "fast" and not torch.is_grad_enabled():
-                self._fast_held = (ctx, network.FastGNN(self.gnn, ctx))
+                self._fast_held = (ctx, network.FastGNN(self.gnn, ctx, self.config.activation))
             return self._rollout(x0, v0, t, ctx)
         finally:
             self._fast_held = None

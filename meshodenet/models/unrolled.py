@@ -101,7 +101,7 @@ class UnrolledMGN(MeshGraphNet):
         targets = targets.transpose(0, 1).reshape(K, -1, 3)
         x0, u, u_prev = x0.reshape(-1, 3), u.reshape(-1, 3), (x_prev - x0).reshape(-1, 3)
         std = torch.where(active > 0, ctx.acc_std, torch.ones_like(ctx.acc_std))
-        gnn = None if self.engine == "reference" else network.FastGNN(self.gnn, ctx)
+        gnn = None if self.engine == "reference" else network.FastGNN(self.gnn, ctx, self.config.activation)
         moving = ctx.batch.free.bool()
         n_free = ctx.batch.free.sum().clamp_min(1)
         total = x0.new_zeros(())
