@@ -9,7 +9,7 @@ Public names: ``Mesh``, ``Trajectories`` (data), ``TrajectoryModel`` (the model 
 from meshodenet.data import DataError, Mesh, Trajectories
 from meshodenet.integrators import GRADIENT_MODES, INTEGRATORS, odesolve
 from meshodenet.interface import TrajectoryModel
-from meshodenet.model import MeshODENet, MeshODENetConfig
+from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
 from meshodenet.registry import MODELS, get_model_spec, load_model, register_model
 from meshodenet.train import TrainConfig, fit
 

@@ -28,6 +28,7 @@ from torch import nn
 
 from meshodenet.data import N_NODE_TYPES, Trajectories
 from meshodenet.graph import GraphBatch, GraphTopology
+from meshodenet.network import RodAngles
 
 NODE_STATIC = {"line": 1, "triangle": 1 + N_NODE_TYPES}
 NODE_DYNAMIC = {"line": 8, "triangle": 6}
@@ -50,15 +51,9 @@ def _length_direction(vec: torch.Tensor) -> torch.Tensor:
 
 
 def turning_angle(x: torch.Tensor, hinges: torch.Tensor) -> torch.Tensor:
-    """``[cos a, sin a]`` per node ``(M, 2)`` from positions ``x (M, 3)``; ``(1, 0)`` off hinges."""
-    p, i, q = hinges[:, 0], hinges[:, 1], hinges[:, 2]
-    e1, e2 = x[i] - x[p], x[q] - x[i]
-    r = (e1.norm(dim=-1) * e2.norm(dim=-1)).clamp_min(1e-30)
-    cos = (e1 * e2).sum(-1) / r
-    sin = (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) / r
-    base = torch.zeros(x.shape[0], 2, dtype=x.dtype, device=x.device)
-    base[:, 0] = 1.0
-    return base.index_copy(0, i, torch.stack([cos, sin], dim=-1))
+    """``[cos a, sin a]`` per node ``(M, 2)`` from positions ``x (M, 3)``; ``(1, 0)`` off hinges
+    (``meshodenet.network.RodAngles``)."""
+    return RodAngles(hinges, x.shape[0], x.dtype, x.device).forward(x)
 
 
 #: How the Young's modulus enters the node features: the paper's ``Y`` itself, or its logarithm

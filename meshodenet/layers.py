@@ -3,8 +3,6 @@ aggregation PyTorch Geometric's ``scatter``) and the encode-process-decode netwo
 
 from __future__ import annotations
 
-import os
-
 import torch
 from torch import nn
 
@@ -59,16 +57,15 @@ class InteractionLayer(nn.Module):
 
     #: the nodes sum the residual-updated edge latent (``False``: the edge MLP's output)
     aggregate_updated_edges = True
-    #: the sum at the receivers: ``"pyg"`` (``torch_geometric.utils.scatter``, the default) or
-    #: ``"handwritten"`` (``index_add_``, the code before; ``meshbench bench engine --impl
-    #: handwritten``; ``MESHODENET_MESSAGE_PASSING=handwritten`` makes it the default). The fast
-    #: engine (``meshodenet.fast``) reads the MLPs' weights and never calls ``forward``, so
-    #: torch_geometric (about 1.5-4 s to import here) is imported only when this runs.
-    message_passing = os.environ.get("MESHODENET_MESSAGE_PASSING", "pyg")
-
     def __init__(self, d: int, n_hidden: int, activation: str = "relu",
-                 layer_norm: bool = False):
+                 layer_norm: bool = False, message_passing: str = "pyg"):
         super().__init__()
+        #: the sum at the receivers: ``"pyg"`` (``torch_geometric.utils.scatter``) or
+        #: ``"handwritten"`` (``index_add_``, the code before; a model config's
+        #: ``message_passing``). The fast engine (``meshodenet.fast``) reads the MLPs' weights
+        #: and never calls ``forward``, so torch_geometric (1.5-4 s to import here) is
+        #: imported only when this runs.
+        self.message_passing = message_passing
         self.edge_mlp = mlp(3 * d, d, d, n_hidden, activation, layer_norm)
         self.node_mlp = mlp(2 * d, d, d, n_hidden, activation, layer_norm)
 
@@ -100,12 +97,13 @@ class EncodeProcessDecode(nn.Module):
 
     def __init__(self, d_node: int, d_edge: int, d_out: int, hidden: int = 128,
                  n_layers: int = 1, mlp_hidden_layers: int = 2, activation: str = "relu",
-                 layer_norm: bool = False):
+                 layer_norm: bool = False, message_passing: str = "pyg"):
         super().__init__()
         args = (mlp_hidden_layers, activation, layer_norm)
         self.node_encoder = mlp(d_node, hidden, hidden, *args)
         self.edge_encoder = mlp(d_edge, hidden, hidden, *args)
-        self.processor = nn.ModuleList(InteractionLayer(hidden, *args) for _ in range(n_layers))
+        self.processor = nn.ModuleList(InteractionLayer(hidden, *args, message_passing)
+                                       for _ in range(n_layers))
         self.decoder = mlp(hidden, hidden, d_out, mlp_hidden_layers, activation, False)
 
     def forward(self, node_in, edge_in, senders, receivers):

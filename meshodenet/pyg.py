@@ -204,7 +204,7 @@ def pyg_presets(preset: str, kind: str):
     ``paper`` (the paper's optimiser and schedule, hidden 128, 15 layers)."""
     from dataclasses import replace
 
-    from meshodenet.presets import check_preset, paper_train_config
+    from meshodenet.models.common import check_preset, paper_train_config
 
     check_preset(preset)
     base = paper_train_config(kind)

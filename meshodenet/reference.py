@@ -2,7 +2,7 @@
 code (``GraphContext.inputs``, ``EncodeProcessDecode``, ``meshodenet.integrators.odesolve``)
 that the fast path (``meshodenet.fast``) replaces. Kept as the definition the fast path is
 tested against (``tests/test_fast.py``) and measured against (``meshbench bench engine --impl
-reference,fast``); select it for a model with ``model.engine = "reference"``.
+reference,fast``); select it with a model config's ``engine = "reference"``.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """Registries of the torch side, keyed by the stable ids used in CSV columns.
 
-``MODELS`` maps a model id to its ``ModelSpec``; a user adds a model from their own file with
-``register_model``. ``INTEGRATORS`` is re-exported from ``meshodenet.integrators``.
+``MODELS`` maps a model id to its ``ModelSpec``, built from the modules of
+``meshodenet.models`` (one per model: config, presets, model); a user adds a model from their
+own file with ``register_model``. ``INTEGRATORS`` is re-exported from ``meshodenet.integrators``.
 """
 
 from __future__ import annotations
@@ -12,12 +13,11 @@ from pathlib import Path
 
 from meshbench_registry import lookup
 from meshodenet.data import Mesh
-from meshodenet.imex import ImexConfig, MeshODENetIMEX, imex_presets
 from meshodenet.integrators import INTEGRATORS
-from meshodenet.mgn import MeshGraphNet, MeshGraphNetConfig, mgn_presets
-from meshodenet.model import MeshODENet, MeshODENetConfig
-from meshodenet.presets import meshodenet_presets
-from meshodenet.unrolled import UnrolledMGN, UnrolledMGNConfig, unrolled_mgn_presets
+from meshodenet.models.imex import ImexConfig, MeshODENetIMEX, imex_presets
+from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig, meshodenet_presets
+from meshodenet.models.mgn import MeshGraphNet, MeshGraphNetConfig, mgn_presets
+from meshodenet.models.unrolled import UnrolledMGN, UnrolledMGNConfig, unrolled_mgn_presets
 
 
 @dataclass(frozen=True)

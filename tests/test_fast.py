@@ -1,17 +1,18 @@
-"""The fast path (``meshodenet.fast``) against the reference implementation
-(``meshodenet.reference``) in float64: vector field, its gradients, whole rollouts and their
-gradients, on the tiny rod and strip, the rod of ``rod_falling`` (batched) and the plate of the
-registered ``plate_cantilever`` case, for several architectures and integrators."""
+"""The fast path (``meshodenet.network``, ``meshodenet.fast``) against the reference
+implementation (``meshodenet.reference``) in float64: vector field, its gradients, whole
+rollouts and their gradients, on the tiny rod and strip, the rod of ``rod_falling``
+(batched) and the plate of the registered ``plate_cantilever`` case, for several
+architectures and integrators."""
 
 from __future__ import annotations
 
-import copy
+from dataclasses import replace
 
 import pytest
 import torch
 
 from meshodenet.data import Mesh, Trajectories
-from meshodenet.model import MeshODENet, MeshODENetConfig
+from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
 
 torch.set_num_threads(1)
 
@@ -31,11 +32,9 @@ def pair(arrays, config, seed=0):
     torch.manual_seed(seed)
     fast = MeshODENet(Mesh.from_arrays(arrays), config, data).double()
     torch.manual_seed(seed)
-    ref = MeshODENet(Mesh.from_arrays(arrays), config, data).double()
-    ref.engine = "reference"
-    for layer in ref.modules():  # today's summation (index_add_); PyG's scatter: test below
-        if hasattr(layer, "message_passing"):
-            layer.message_passing = "handwritten"
+    # the summation of the code before PyG (index_add_); PyG's scatter: test below
+    ref_config = replace(config, engine="reference", message_passing="handwritten")
+    ref = MeshODENet(Mesh.from_arrays(arrays), ref_config, data).double()
     with torch.no_grad():  # random biases and decoder so that nothing is trivially zero
         g = torch.Generator().manual_seed(seed + 1)
         for pf, pr in zip(fast.parameters(), ref.parameters(), strict=True):
@@ -161,7 +160,7 @@ def test_float32_matches_to_round_off():
     m = MeshODENet(Mesh.from_arrays(arrays), MeshODENetConfig(hidden=32), data)
     out = []
     for engine in ("fast", "reference"):
-        m.engine = engine
+        m.config = replace(m.config, engine=engine)
         m.zero_grad()
         m.training_loss(data, torch.arange(2)).backward()
         out.append(grads(m))
@@ -189,14 +188,13 @@ def test_field_follows_parameter_updates():
 
 # --- MeshGraphNet -------------------------------------------------------------------------------
 def mgn_pair(arrays, config, seed=0):
-    from meshodenet.mgn import MeshGraphNet
+    from meshodenet.models.mgn import MeshGraphNet
 
     data = Trajectories.from_arrays(arrays, dtype=torch.float64)
     models = []
     for engine in ("fast", "reference"):
         torch.manual_seed(seed)
-        m = MeshGraphNet(Mesh.from_arrays(arrays), config, data).double()
-        m.engine = engine
+        m = MeshGraphNet(Mesh.from_arrays(arrays), replace(config, engine=engine), data).double()
         models.append(m)
     with torch.no_grad():
         g = torch.Generator().manual_seed(seed + 1)
@@ -208,7 +206,7 @@ def mgn_pair(arrays, config, seed=0):
 
 @pytest.mark.parametrize("source", ["tiny", "rod_falling", "plate_cantilever"])
 def test_mgn_one_step_training_and_rollout_match(arrays, source):
-    from meshodenet.mgn import MeshGraphNetConfig
+    from meshodenet.models.mgn import MeshGraphNetConfig
 
     arr = arrays if source == "tiny" else case_arrays(source, n=2, frames=5)
     cfg = MeshGraphNetConfig(hidden=16, layers=3, noise=0.01)
@@ -280,10 +278,8 @@ def test_pyg_scatter_reference_matches_handwritten_to_round_off():
     over a whole training rollout they agree to float64 round-off, not bit for bit (measured on
     the 3 batched rods: up to 5.2e-10 relative in 8 of 16384 entries of one weight gradient)."""
     _, ref, data = pair(case_arrays("rod_falling", n=3, frames=4), MeshODENetConfig())
-    pyg = copy.deepcopy(ref)
-    for layer in pyg.modules():
-        if hasattr(layer, "message_passing"):
-            layer.message_passing = "pyg"
+    pyg = MeshODENet(ref.mesh, replace(ref.config, message_passing="pyg")).double()
+    pyg.load_state_dict(ref.state_dict())
     check_training_step(pyg, ref, data, 3, tol={"rtol": 2e-9, "atol": 1e-12})
 
 
@@ -306,3 +302,48 @@ def test_bench_authors_stand_in_counts_its_evaluations_and_trains_every_weight(g
     assert f.edge_index.max() == 21 * n - 1
     for regime in ("nograd", "fwdbwd"):
         assert Regime(graph, regime, "authors", 3).run(2) == 2
+
+
+# --- the engine in the configuration ----------------------------------------------------------
+@pytest.mark.parametrize("model_id", ["meshodenet", "mgn", "meshodenet_imex", "mgn_unrolled"])
+def test_engine_is_a_config_field_and_old_runs_read_as_the_default(model_id, tmp_path):
+    """``engine`` and ``message_passing`` are config fields (default ``fast`` / ``pyg``, as
+    before they were): saved in config.json and the checkpoint, checked, and a run stored
+    before they existed compares equal to today's default configuration."""
+    import json
+    from dataclasses import asdict
+
+    from benchmarks.suite.runs import with_defaults
+    from meshodenet.models.common import PRESETS
+    from meshodenet.registry import get_model_spec, load_model
+    from meshodenet.train import fit
+    from tests.conftest import rod_arrays
+
+    spec = get_model_spec(model_id)
+    for preset in PRESETS:
+        tc, mc = spec.presets(preset, "line")
+        assert (mc.engine, mc.message_passing) == ("fast", "pyg")
+        new = json.loads(json.dumps({"model": model_id, "train": asdict(tc),
+                                     "model_config": asdict(mc)}))
+        old = json.loads(json.dumps(new))
+        del old["model_config"]["engine"], old["model_config"]["message_passing"]
+        assert with_defaults(old) == new
+        assert spec.config_from_dict(old["model_config"]) == mc
+    name = spec.config_cls.__name__
+    with pytest.raises(ValueError, match=rf"{name}\.engine must be one of fast, reference; "
+                                         r"got 'slow'"):
+        spec.config_cls(engine="slow")
+    with pytest.raises(ValueError, match=rf"{name}\.message_passing .*'torch'"):
+        spec.config_cls(message_passing="torch")
+    arrays = rod_arrays(B=3, T=8)
+    data = Trajectories.from_arrays(arrays)
+    tc, mc = spec.presets("smoke", "line")
+    mc = replace(mc, engine="reference", message_passing="handwritten")
+    model = spec.build(Mesh.from_arrays(arrays), mc, data.subset(torch.arange(2)))
+    assert model.engine == "reference"
+    fit(model, data.subset(torch.arange(2)), data.subset(torch.tensor([2])),
+        replace(tc, epochs=1), tmp_path, progress=False)
+    loaded, ck = load_model(tmp_path / "last.pt")
+    assert ck["model_info"]["config"]["engine"] == "reference" and loaded.config == mc
+    assert {m.message_passing for m in loaded.modules() if hasattr(m, "message_passing")} \
+        == {"handwritten"}

@@ -1,4 +1,4 @@
-"""MeshODENet-IMEX (``meshodenet.imex``) and the ``youngs_feature`` option."""
+"""MeshODENet-IMEX (``meshodenet.models.imex``) and the ``youngs_feature`` option."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import torch
 from meshodenet import reference
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import FeatureStats
-from meshodenet.imex import ImexConfig, MeshODENetIMEX
-from meshodenet.model import MeshODENet, MeshODENetConfig
+from meshodenet.models.imex import ImexConfig, MeshODENetIMEX
+from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
 from meshodenet.registry import get_model_spec, load_model
 from tests.conftest import rod_arrays, strip_arrays
 
@@ -55,7 +55,7 @@ def test_rollout_is_the_semi_implicit_scheme_with_equal_gradients(make):
     # against the reference field
     grads = []
     for engine, seg in (("reference", 0), ("fast", 0), ("fast", 2)):
-        model.engine = engine
+        model.config = replace(model.config, engine=engine)
         object.__setattr__(model.config, "checkpoint_every", seg)
         model.zero_grad()
         p, _ = model.rollout(tr.pos[idx, 0], tr.vel[idx, 0], tr.youngs[idx], tr.t)
@@ -136,7 +136,8 @@ def test_registered_trains_resumes_and_reloads(tmp_path):
 @pytest.mark.parametrize("make", [rod_arrays, strip_arrays])
 def test_rest_position_feature_fast_equals_reference(make):
     from meshodenet import fast
-    from meshodenet.model import MeshODENet
+    from meshodenet.models.meshodenet import MeshODENet
+    from meshodenet.network import FastField
 
     arrays = make()
     mesh, tr = Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays, dtype=torch.float64)
@@ -147,7 +148,7 @@ def test_rest_position_feature_fast_equals_reference(make):
     assert ctx.node_static.shape[1] == (1 if mesh.kind == "line" else 3) + 3
     z = torch.stack([tr.pos[:2, 2].reshape(-1, 3), tr.vel[:2, 2].reshape(-1, 3)])
     want = reference.vector_field(model, z, ctx)
-    got = fast.evaluate(fast.FastField(model, ctx), z)
+    got = fast.evaluate(FastField(model, ctx), z)
     assert torch.allclose(got, want, rtol=1e-10, atol=1e-12 * float(want.abs().max()))
     # the rest coordinates are what the static features hold (normalised)
     s = ctx.node_static[:, -3:] * model.stats.node.std[ctx.node_static.shape[1] - 3:
@@ -159,7 +160,7 @@ def test_rest_position_feature_fast_equals_reference(make):
 
 
 def test_mgn_vector_acceleration_normaliser():
-    from meshodenet.mgn import MeshGraphNet, MeshGraphNetConfig
+    from meshodenet.models.mgn import MeshGraphNet, MeshGraphNetConfig
 
     arrays = rod_arrays(B=3, T=8)
     arrays["pos"][..., 0] += 1e-4 * np.sin(np.arange(8))[None, :, None]  # some x motion
@@ -193,7 +194,7 @@ def _window_starts(model, tr, samples, gen):
 
 
 def test_release_fraction_default_draws_nothing_and_option_starts_windows_at_frame_0():
-    from meshodenet.model import release_count
+    from meshodenet.models.meshodenet import release_count
 
     arrays = rod_arrays(B=4, T=8)  # 7 intervals: windows of 2, 3 per trajectory, offset 0-1
     model, tr = _build(arrays, shooting=2)
@@ -226,7 +227,7 @@ def test_release_fraction_default_draws_nothing_and_option_starts_windows_at_fra
 
 def test_release_fraction_is_checked_and_old_runs_read_as_the_default():
     from benchmarks.suite.runs import apply_overrides, with_defaults
-    from meshodenet.imex import imex_presets
+    from meshodenet.models.imex import imex_presets
 
     for cls in (ImexConfig, MeshODENetConfig):
         for name in ("release_fraction", "frame_weight"):
@@ -299,7 +300,7 @@ def test_release_weight_adds_the_first_step_relative_to_standing_still(lam):
 
 def test_release_weight_is_checked_and_old_runs_read_as_the_default():
     from benchmarks.suite.runs import apply_overrides, with_defaults
-    from meshodenet.imex import imex_presets
+    from meshodenet.models.imex import imex_presets
 
     for cls in (ImexConfig, MeshODENetConfig):
         for bad in (-0.1, float("nan"), float("inf"), True, "0.5"):

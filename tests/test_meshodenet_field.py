@@ -8,7 +8,7 @@ import torch
 from meshodenet.data import DataError, Mesh, Trajectories
 from meshodenet.features import Normalizer
 from meshodenet.graph import rod_hinges
-from meshodenet.model import MeshODENet, MeshODENetConfig
+from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
 from tests.conftest import permuted_arrays
 
 torch.set_num_threads(1)  # tiny graphs: threads only add overhead

@@ -9,7 +9,7 @@ import torch
 
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.integrators import GRADIENT_MODES, INTEGRATORS, get_integrator, odesolve
-from meshodenet.model import MeshODENet, MeshODENetConfig
+from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
 
 torch.set_num_threads(1)  # tiny problems: threads only add overhead
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from meshodenet.data import Mesh, Trajectories, split_indices
-from meshodenet.model import MeshODENet, MeshODENetConfig
+from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
 from meshodenet.train import TrainConfig, fit, load_checkpoint, make_optimizer, train_epoch
 from tests.conftest import rod_arrays, strip_arrays
 
@@ -136,7 +136,8 @@ def test_train_config_errors_name_the_field(field, value):
 
 
 def test_presets_resolve_for_both_mesh_kinds():
-    from meshodenet.presets import PRESETS, meshodenet_presets
+    from meshodenet.models.common import PRESETS
+    from meshodenet.models.meshodenet import meshodenet_presets
 
     for kind in ("line", "triangle"):
         for preset in PRESETS:
@@ -155,8 +156,8 @@ def test_quick_plate_presets_train_without_weight_decay_and_rods_keep_it():
     0.119 m without (no motion 0.1705 m; docs/TRAINING.md, "The in-plane plate"). The plate's
     ``quick`` presets of both models drop it and validate every epoch; the rod's keep the
     paper's weight decay."""
-    from meshodenet.mgn import mgn_presets
-    from meshodenet.presets import meshodenet_presets
+    from meshodenet.models.meshodenet import meshodenet_presets
+    from meshodenet.models.mgn import mgn_presets
 
     for presets in (meshodenet_presets, mgn_presets):
         plate, rod = presets("quick", "triangle")[0], presets("quick", "line")[0]

@@ -11,7 +11,7 @@ import torch
 
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.graph import rod_hinges
-from meshodenet.mgn import (
+from meshodenet.models.mgn import (
     PAPER_LAYERS,
     GraphNetBlock,
     MeshGraphNet,

@@ -16,7 +16,7 @@ from torch_geometric.data import Batch  # noqa: E402
 
 from meshodenet.data import Mesh, Trajectories  # noqa: E402
 from meshodenet.layers import InteractionLayer  # noqa: E402
-from meshodenet.mgn import GraphNetBlock  # noqa: E402
+from meshodenet.models.mgn import GraphNetBlock  # noqa: E402
 from tests.conftest import rod_arrays  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

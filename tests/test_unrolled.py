@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from meshodenet.data import Mesh, Trajectories
-from meshodenet.mgn import MeshGraphNet, MeshGraphNetConfig
+from meshodenet.models.mgn import MeshGraphNet, MeshGraphNetConfig
+from meshodenet.models.unrolled import UnrolledMGN, UnrolledMGNConfig, unrolled_mgn_presets
 from meshodenet.registry import get_model_spec
-from meshodenet.unrolled import UnrolledMGN, UnrolledMGNConfig, unrolled_mgn_presets
 from tests.conftest import rod_arrays, strip_arrays
 from tests.test_mgn import Replay, true_accelerations
 
@@ -121,8 +121,7 @@ def test_gradient_flows_through_the_window():
     fast path and the modules' own forward agree on both."""
     losses, grads = {}, {}
     for engine in ("fast", "reference"):
-        model, data = build(rod_arrays(B=1, T=6), unroll=3)
-        model.engine = engine
+        model, data = build(rod_arrays(B=1, T=6), unroll=3, engine=engine)
         loss = model.training_loss(data, torch.arange(3).repeat(3), torch.Generator())
         loss.backward()
         losses[engine] = loss.detach()
@@ -153,7 +152,7 @@ def test_window_longer_than_the_data_is_refused():
 
 
 def test_presets_are_mgns_with_the_window():
-    from meshodenet.mgn import mgn_presets
+    from meshodenet.models.mgn import mgn_presets
 
     for preset in ("paper", "quick", "smoke"):
         for kind in ("line", "triangle"):

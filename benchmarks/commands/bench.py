@@ -178,7 +178,7 @@ def _measure(mode: str, p: dict) -> dict:
     from benchmarks.suite.registry import get_case
     from benchmarks.suite.runs import pick_device
     from meshodenet.data import Mesh, Trajectories
-    from meshodenet.model import MeshODENet, MeshODENetConfig
+    from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
     from meshodenet.train import TrainConfig, make_optimizer, train_epoch
 
     if p["threads"]:

@@ -60,19 +60,15 @@ PAPER_CASES = ("rod_falling", "plate_cantilever")
 
 
 # --- setup shared by the parent and the memory children -------------------------------------
-def _set_impl(model, impl: str) -> None:
-    if impl != "current":
-        if not hasattr(model, "engine"):
-            raise ValueError(f"--impl {impl}: this version of MeshODENet has only one "
-                             "implementation; use --impl current")
-        if impl == "handwritten":  # the reference engine with the layers before PyG
-            from meshodenet.layers import InteractionLayer
+def _impl_config(config, impl: str):
+    """``config`` with the ``engine`` / ``message_passing`` fields of ``--impl impl``."""
+    import dataclasses
 
-            for m in model.modules():
-                if isinstance(m, InteractionLayer):
-                    m.message_passing = "handwritten"
-            impl = "reference"
-        model.engine = impl
+    if impl == "current":
+        return config
+    if impl == "handwritten":  # the reference engine with the layers' sum before PyG
+        return dataclasses.replace(config, engine="reference", message_passing="handwritten")
+    return dataclasses.replace(config, engine=impl)
 
 
 def _arrays(case_id: str, n: int, frames: int):
@@ -125,12 +121,11 @@ def build(case_id: str, n_graphs: int, frames: int, hidden: int = 128, impl: str
     bench trajectories and a field context for ``n_graphs`` of them."""
     import torch
 
-    from meshodenet.model import MeshODENet, MeshODENetConfig
+    from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
 
     mesh, data, source = mesh_and_data(case_id, n_graphs, frames, dtype)
     torch.manual_seed(0)
-    model = MeshODENet(mesh, MeshODENetConfig(hidden=hidden), data)
-    _set_impl(model, impl)
+    model = MeshODENet(mesh, _impl_config(MeshODENetConfig(hidden=hidden), impl), data)
     return model, data, source
 
 
@@ -436,7 +431,7 @@ def mgn_bench(case_id: str, impls, rounds: int = 3, log=print) -> dict:
 
     from benchmarks.suite.registry import get_case
     from meshodenet.data import Mesh, Trajectories
-    from meshodenet.mgn import MeshGraphNet, mgn_presets
+    from meshodenet.models.mgn import MeshGraphNet, mgn_presets
 
     case = get_case(case_id)
     arrays, _ = _arrays(case_id, 2, case.n_frames)
@@ -446,8 +441,7 @@ def mgn_bench(case_id: str, impls, rounds: int = 3, log=print) -> dict:
     models = {}
     for i in impls:
         torch.manual_seed(0)
-        models[i] = MeshGraphNet(mesh, mcfg, data)
-        _set_impl(models[i], i)
+        models[i] = MeshGraphNet(mesh, _impl_config(mcfg, i), data)
     samples = torch.randperm(models[impls[0]].n_training_samples(data),
                              generator=torch.Generator().manual_seed(0))[:tcfg.batch_size]
 

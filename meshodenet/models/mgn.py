@@ -1,4 +1,5 @@
-"""MeshGraphNet (Pfaff et al. 2021), the paper's autoregressive baseline (its section 3).
+"""MeshGraphNet (Pfaff et al. 2021), the paper's autoregressive baseline (its section 3): its
+config, presets and model.
 
 A one-step model on the graphs, features and normalisers of MeshODENet
 (``meshodenet.graph``, ``meshodenet.features``): from the positions of two consecutive frames
@@ -41,7 +42,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import nn
 
-from meshodenet import fast
+from meshodenet import network
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import (
     EDGE_DYNAMIC,
@@ -50,15 +51,19 @@ from meshodenet.features import (
     GraphContext,
     check_rest_position,
     check_youngs_feature,
-    dynamic_edge_features,
-    dynamic_node_features,
     graph_context,
     n_node_features,
 )
 from meshodenet.graph import GraphTopology
 from meshodenet.interface import TrajectoryModel
 from meshodenet.layers import ACTIVATIONS, EncodeProcessDecode, InteractionLayer
-from meshodenet.presets import check_preset, paper_train_config
+from meshodenet.models.common import (
+    check_choice,
+    check_engine,
+    check_int,
+    check_preset,
+    paper_train_config,
+)
 from meshodenet.train import TrainConfig
 
 DT_RTOL = 1e-3  # frames closer than this to uniform spacing count as uniform
@@ -69,21 +74,19 @@ class MeshGraphNetConfig:
     """Architecture and training noise of MeshGraphNet.
 
     - ``hidden``, ``layers``, ``mlp_hidden_layers``, ``activation``: latent width, number of
-      message-passing blocks, hidden layers per MLP (MeshGraphNets: 128, 15, 2, ReLU; the
-      paper: 15 blocks for the rod, 30 for the plate, see ``mgn_presets``).
+      message-passing blocks, hidden layers per MLP, activation (MeshGraphNets: 128, 15, 2,
+      ReLU; the paper's depth per mesh kind: ``PAPER_LAYERS``).
     - ``noise``: std of the training noise on positions, as a fraction of ``step_rms`` (the
-      RMS one-frame displacement of free nodes in the training data); 0 turns it off. The
-      default, 0, won a study on the validation split of ``rod_falling`` at the ``quick``
-      budget (0, 0.003, 0.01, 0.03, 0.1; docs/MGN.md); at the ``paper`` budget it is untested.
-    - ``noise_gamma``: share of the noise the target corrects in position (MeshGraphNets'
-      cloth: 0.1), the rest in velocity.
-    - ``youngs_feature``: ``linear`` (the paper) or ``log``; ``rest_position``: add rest
-      coordinates to the node features; both as ``MeshODENetConfig``.
-    - ``acc_norm``: ``component`` normalises the target acceleration per component (its own
-      std for x, y, z); ``vector`` with one std for the vector (the root mean square of the
-      moving components' stds), so that isotropic training noise weighs the same in every
-      direction of the loss (per component, the rod's x accelerations, 17 times smaller than
-      its y ones, turn x noise into the loss's largest term).
+      RMS one-frame displacement of free nodes in the training data); 0 turns it off
+      (docs/MGN.md, "Noise study").
+    - ``noise_gamma``: share of the noise the target corrects in position, the rest in
+      velocity (MeshGraphNets' cloth: 0.1).
+    - ``youngs_feature``, ``rest_position``: as ``MeshODENetConfig``.
+    - ``acc_norm``: ``component`` normalises the target acceleration per component; ``vector``
+      with one std for the vector (the root mean square of the moving components' stds), so
+      that isotropic training noise weighs the same in every direction of the loss.
+    - ``engine``, ``message_passing``: how the network is evaluated
+      (``meshodenet.models.common.ENGINES``, ``MESSAGE_PASSING``); not the model itself.
     """
 
     hidden: int = 128
@@ -95,20 +98,19 @@ class MeshGraphNetConfig:
     youngs_feature: str = "linear"
     rest_position: bool = False
     acc_norm: str = "component"
+    engine: str = "fast"
+    message_passing: str = "pyg"
 
     def __post_init__(self):
+        check_engine(self)
         if self.acc_norm not in ("component", "vector"):
             raise ValueError(f"MeshGraphNetConfig.acc_norm must be 'component' or 'vector', got "
                              f"{self.acc_norm!r}")
         check_rest_position("MeshGraphNetConfig", self.rest_position)
         check_youngs_feature("MeshGraphNetConfig", self.youngs_feature)
         for name, lo in (("hidden", 1), ("layers", 0), ("mlp_hidden_layers", 0)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                raise ValueError(f"MeshGraphNetConfig.{name} must be an int >= {lo}, got {v!r}")
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"MeshGraphNetConfig.activation must be one of "
-                             f"{', '.join(sorted(ACTIVATIONS))}; got {self.activation!r}")
+            check_int(self, name, lo)
+        check_choice(self, "activation", ACTIVATIONS)
         for name, hi in (("noise", math.inf), ("noise_gamma", 1.0)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= hi \
@@ -137,11 +139,11 @@ class MeshGraphNetwork(EncodeProcessDecode):
     decoder. Shapes: as ``EncodeProcessDecode``."""
 
     def __init__(self, d_node: int, d_edge: int, d_out: int, hidden: int, n_layers: int,
-                 mlp_hidden_layers: int, activation: str):
+                 mlp_hidden_layers: int, activation: str, message_passing: str = "pyg"):
         super().__init__(d_node, d_edge, d_out, hidden, 0, mlp_hidden_layers, activation,
                          layer_norm=True)
         self.processor = nn.ModuleList(
-            GraphNetBlock(hidden, mlp_hidden_layers, activation, layer_norm=True)
+            GraphNetBlock(hidden, mlp_hidden_layers, activation, True, message_passing)
             for _ in range(n_layers))
 
 
@@ -186,9 +188,6 @@ class MeshGraphNet(TrajectoryModel):
     """
 
     name = "mgn"
-    #: ``"fast"`` (``meshodenet.fast.FastGNN``: split weights, static features folded) or
-    #: ``"reference"`` (the modules' own forward): same numbers up to float round-off.
-    engine = fast.default_engine()
 
     def __init__(self, mesh: Mesh, config: MeshGraphNetConfig, train: Trajectories | None = None,
                  hinges=None):
@@ -204,9 +203,15 @@ class MeshGraphNet(TrajectoryModel):
         self.gnn = MeshGraphNetwork(n_node_features(self.kind, config.rest_position),
                                     EDGE_STATIC + EDGE_DYNAMIC, 3,
                                     config.hidden, config.layers, config.mlp_hidden_layers,
-                                    config.activation)
+                                    config.activation, config.message_passing)
         self.diverged: dict = {}
         self._fast_held = None
+
+    @property
+    def engine(self) -> str:
+        """The config's ``engine``: ``fast`` (``meshodenet.network.FastGNN``: split weights, static
+        features folded) or ``reference`` (the modules' own forward)."""
+        return self.config.engine
 
     @torch.no_grad()
     def _compute_stats(self, train: Trajectories) -> None:
@@ -230,9 +235,9 @@ class MeshGraphNet(TrajectoryModel):
                              dt=float(self.dt))
 
     def forward(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext,
-                gnn: fast.FastGNN | None = None) -> torch.Tensor:
+                gnn: network.FastGNN | None = None) -> torch.Tensor:
         """Normalised acceleration ``(M, 3)`` from positions ``x, x_prev (M, 3)`` of frames
-        ``k`` and ``k - 1``. ``gnn``: a ``fast.FastGNN`` of ``ctx`` to reuse (a training loss
+        ``k`` and ``k - 1``. ``gnn``: a ``network.FastGNN`` of ``ctx`` to reuse (a training loss
         that steps several times within one backward pass builds it once)."""
         b = ctx.batch
         v = (x - x_prev) / ctx.dt * b.free
@@ -241,18 +246,18 @@ class MeshGraphNet(TrajectoryModel):
             return self.gnn(node_in, edge_in, b.senders, b.receivers)
         if gnn is None:
             gnn = self._fast_gnn(ctx)
-        return gnn(dynamic_node_features(x, v, b, ctx.kind), dynamic_edge_features(x, b))
+        return gnn(x, v)
 
-    def _fast_gnn(self, ctx: StepContext) -> fast.FastGNN:
-        """``fast.FastGNN`` of ``ctx``: the one ``rollout`` built for its context (parameters
+    def _fast_gnn(self, ctx: StepContext) -> network.FastGNN:
+        """``network.FastGNN`` of ``ctx``: the one ``rollout`` built for its context (parameters
         do not change during a rollout), else a new one."""
         held = self._fast_held
         if held is not None and held[0] is ctx and not torch.is_grad_enabled():
             return held[1]
-        return fast.FastGNN(self.gnn, ctx)
+        return network.FastGNN(self.gnn, ctx, self.config.activation)
 
     def step(self, x: torch.Tensor, x_prev: torch.Tensor, ctx: StepContext,
-             gnn: fast.FastGNN | None = None) -> torch.Tensor:
+             gnn: network.FastGNN | None = None) -> torch.Tensor:
         """Positions of frame ``k + 1``: ``2 x - x_prev + a dt^2``, clamped nodes held."""
         a = self(x, x_prev, ctx, gnn) * ctx.acc_std + ctx.acc_mean
         x_next = 2 * x - x_prev + a * ctx.dt ** 2
@@ -276,7 +281,7 @@ class MeshGraphNet(TrajectoryModel):
         ctx = self.context(youngs, x0.dtype)
         try:
             if self.engine == "fast" and not torch.is_grad_enabled():
-                self._fast_held = (ctx, fast.FastGNN(self.gnn, ctx))
+                self._fast_held = (ctx, network.FastGNN(self.gnn, ctx, self.config.activation))
             return self._rollout(x0, v0, t, ctx)
         finally:
             self._fast_held = None
@@ -375,7 +380,11 @@ class MeshGraphNet(TrajectoryModel):
         return (err * ctx.batch.free).sum() / ctx.batch.free.sum().clamp_min(1)
 
 
-# ``quick``: reasoning in ``mgn_presets`` and docs/MGN.md.
+# --- presets ------------------------------------------------------------------------------------
+#: message-passing blocks of ``paper`` per mesh kind (the paper: 15 for the rod, 30 for the plate)
+PAPER_LAYERS = {"line": 15, "triangle": 30}
+#: ``quick`` per mesh kind: ``(TrainConfig fields, MeshGraphNetConfig fields)`` over the paper's
+#: optimiser; measured and why: docs/MGN.md, "Presets".
 QUICK_MGN = {
     "line": (dict(epochs=20, lr=1e-3, lr_milestones=(14,), batch_size=32, max_batches=120),
              dict(hidden=64, layers=15, acc_norm="vector", noise=0.03, youngs_feature="log",
@@ -385,33 +394,12 @@ QUICK_MGN = {
                  dict(hidden=32, layers=30, rest_position=True)),
 }
 
-# --- presets ------------------------------------------------------------------------------------
-PAPER_LAYERS = {"line": 15, "triangle": 30}
-
 
 def mgn_presets(preset: str, kind: str) -> tuple[TrainConfig, MeshGraphNetConfig]:
-    """``(TrainConfig, MeshGraphNetConfig)`` of ``preset`` for a mesh of ``kind``.
-
-    - ``paper``: latent 128, MLPs of 2 hidden layers, 15 message-passing blocks for line meshes
-      (the rod) and 30 for triangle meshes (the plate), the paper's optimiser and schedule
-      (Adam, lr 1e-4, weight decay 5e-4, / 10 every 100 epochs over 400 for the rod, at 200
-      and 400 over 600 for the plate). The paper gives no batch size; one training frame per
-      optimizer step, as MeshGraphNets (cloth), so an epoch is every training frame once.
-    - ``quick``: the paper's depth (15 / 30 blocks), loss and noise, reduced where it costs
-      least to train a case in 4-10 minutes on one CPU thread: latent 64 (rod) / 32 (plate),
-      lr 1e-3 with a last stretch at 1e-4, 32 frames per step, epochs capped at 120 (rod) /
-      48 (plate) steps of a fresh random subset of the frames. Rod: the acceleration
-      normalised per vector, training noise 0.03 step_rms in the plane of motion, log modulus
-      (validation study in docs/MGN.md). The plate (6 epochs) trains
-      without weight decay and validates every epoch: on its validation split this reached
-      0.108 m (seed 0; 0.114 m at seed 1) in 399-411 s on one thread, against 0.123 m
-      (seed 0) for the former plate preset (16 frames per step, 64 steps, 12 epochs, weight
-      decay 5e-4, validation every second epoch); no motion 0.1705 m (docs/TRAINING.md,
-      "The in-plane plate"). Both cases feed the nodes' rest coordinates (``rest_position``;
-      seed 0, validation: rod 8.13 -> 3.09 mm, plate 108 -> 51 mm; docs/TRAINING.md, "Rest
-      coordinates for every model").
-    - ``smoke``: a tiny model, 2 epochs of 3 steps, for tests.
-    """
+    """``(TrainConfig, MeshGraphNetConfig)`` of ``preset`` for a mesh of ``kind``: ``paper``
+    latent 128, MLPs of 2 hidden layers, ``PAPER_LAYERS`` blocks, the paper's optimiser and
+    schedule, one training frame per optimizer step; ``quick`` with ``QUICK_MGN``; ``smoke``
+    a tiny model, 2 epochs of 3 steps, for tests."""
     check_preset(preset)
     if kind not in PAPER_LAYERS:
         raise ValueError(f"no MeshGraphNet preset for mesh kind {kind!r}; valid: "

@@ -1,12 +1,13 @@
-"""MeshGraphNet trained through its own short rollouts (``mgn_unrolled``): our model.
+"""MeshGraphNet trained through its own short rollouts (``mgn_unrolled``): its config, presets
+and model.
 
-The network, features, normalisers, step and rollout are MeshGraphNet's (``meshodenet.mgn``);
-only the training loss differs. MeshGraphNet learns one step from two true frames and, rolled
-out, drifts on its own errors; MeshODENet is trained on rollouts of many intervals and drifts
-less but is worse one step ahead (docs/TRAINING.md). Here a sample is a window of ``unroll``
-steps: from the true frames ``k - 1, k`` (with MeshGraphNet's training noise on frame ``k``)
-the model steps ``unroll`` times on its own predictions, and the loss, backpropagated through
-the whole window, is the mean over its steps ``j = 1 .. unroll`` of
+The network, features, normalisers, step and rollout are MeshGraphNet's
+(``meshodenet.models.mgn``); only the training loss differs. MeshGraphNet learns one step from
+two true frames and, rolled out, drifts on its own errors; MeshODENet is trained on rollouts of
+many intervals and drifts less but is worse one step ahead (docs/TRAINING.md). Here a sample is
+a window of ``unroll`` steps: from the true frames ``k - 1, k`` (with MeshGraphNet's training
+noise on frame ``k``) the model steps ``unroll`` times on its own predictions, and the loss,
+backpropagated through the whole window, is the mean over its steps ``j = 1 .. unroll`` of
 
 .. math::
     \\frac{1}{|F|} \\sum_{i \\in F} \\Big| \\frac{\\hat x_{k+j,i} - x_{k+j,i}}
@@ -34,10 +35,10 @@ from dataclasses import dataclass
 
 import torch
 
-from meshodenet import fast
+from meshodenet import network
 from meshodenet.data import Trajectories
-from meshodenet.mgn import MeshGraphNet, MeshGraphNetConfig, mgn_presets
-from meshodenet.presets import check_preset
+from meshodenet.models.common import check_int, check_preset
+from meshodenet.models.mgn import MeshGraphNet, MeshGraphNetConfig, mgn_presets
 
 
 @dataclass(frozen=True)
@@ -51,9 +52,7 @@ class UnrolledMGNConfig(MeshGraphNetConfig):
     def __post_init__(self):
         super().__post_init__()
         for name, lo in (("unroll", 1), ("one_step_epochs", 0)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                raise ValueError(f"UnrolledMGNConfig.{name} must be an int >= {lo}, got {v!r}")
+            check_int(self, name, lo)
 
 
 class UnrolledMGN(MeshGraphNet):
@@ -102,7 +101,7 @@ class UnrolledMGN(MeshGraphNet):
         targets = targets.transpose(0, 1).reshape(K, -1, 3)
         x0, u, u_prev = x0.reshape(-1, 3), u.reshape(-1, 3), (x_prev - x0).reshape(-1, 3)
         std = torch.where(active > 0, ctx.acc_std, torch.ones_like(ctx.acc_std))
-        gnn = None if self.engine == "reference" else fast.FastGNN(self.gnn, ctx)
+        gnn = None if self.engine == "reference" else network.FastGNN(self.gnn, ctx, self.config.activation)
         moving = ctx.batch.free.bool()
         n_free = ctx.batch.free.sum().clamp_min(1)
         total = x0.new_zeros(())

@@ -1,4 +1,5 @@
-r"""MeshODENet-IMEX: MeshODENet's graph field with the case's linear drag integrated implicitly.
+r"""MeshODENet-IMEX: MeshODENet's graph field with the case's linear drag integrated implicitly;
+its config, presets and model.
 
 Both cases of the paper are strongly damped. The falling rod's Stokes drag relaxes a node's
 velocity at ``gamma = c / m = 2.6e6`` 1/s, so its velocity is slaved to its shape
@@ -41,13 +42,19 @@ from torch.utils.checkpoint import checkpoint
 
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.features import _Moments
-from meshodenet.model import MeshODENet, MeshODENetConfig, check_fraction, check_nonnegative
-from meshodenet.presets import check_preset, meshodenet_presets
+from meshodenet.models.common import (
+    check_engine,
+    check_fraction,
+    check_int,
+    check_nonnegative,
+    check_preset,
+)
+from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig, meshodenet_presets
 
 #: the fields ``ImexConfig`` shares with ``MeshODENetConfig`` (same meaning)
 SHARED_FIELDS = ("hidden", "layers", "mlp_hidden_layers", "activation", "shooting",
                  "shooting_epochs", "youngs_feature", "rest_position", "release_fraction",
-                 "frame_weight", "release_weight")
+                 "frame_weight", "release_weight", "engine", "message_passing")
 
 
 @dataclass(frozen=True)
@@ -55,7 +62,7 @@ class ImexConfig:
     """Architecture and training horizon of MeshODENet-IMEX (meanings as ``MeshODENetConfig``):
     ``hidden``, ``layers``, ``mlp_hidden_layers``, ``activation``, ``shooting``,
     ``shooting_epochs``, ``youngs_feature``, ``rest_position``, ``release_fraction``,
-    ``frame_weight``, ``release_weight`` (``SHARED_FIELDS``);
+    ``frame_weight``, ``release_weight``, ``engine``, ``message_passing`` (``SHARED_FIELDS``);
     ``checkpoint_every`` steps per recomputed segment in the backward pass (0: keep the whole
     graph; the same gradient either way)."""
 
@@ -71,16 +78,17 @@ class ImexConfig:
     release_fraction: float = 0.0
     frame_weight: float = 0.0
     release_weight: float = 0.0
+    engine: str = "fast"
+    message_passing: str = "pyg"
 
     def __post_init__(self):
+        check_engine(self)
         for name in ("release_fraction", "frame_weight"):
             check_fraction("ImexConfig", name, getattr(self, name))
         check_nonnegative("ImexConfig", "release_weight", self.release_weight)
         # MeshODENetConfig checks the shared fields (names, types, ranges)
         self.base()
-        v = self.checkpoint_every
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-            raise ValueError(f"ImexConfig.checkpoint_every must be an int >= 0, got {v!r}")
+        check_int(self, "checkpoint_every", 0)
 
     def base(self) -> MeshODENetConfig:
         return MeshODENetConfig(**{n: getattr(self, n) for n in SHARED_FIELDS})

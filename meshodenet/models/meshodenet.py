@@ -1,4 +1,5 @@
-"""MeshODENet (section 2.2 of the paper): a GNN vector field integrated over the whole rollout.
+"""MeshODENet (section 2.2 of the paper): a GNN vector field integrated over the whole rollout;
+its config, presets and model.
 
 State ``z = [x, v]`` of all nodes of a batch of trajectories, ``z (2, M, 3)``, and
 ``dz/dt = [v, GNN(G_t)]`` with the graph ``G_t`` rebuilt from ``x, v`` at every evaluation.
@@ -7,14 +8,15 @@ The GNN is encode-process-decode (``meshodenet.layers``) on the normalised featu
 statistics. Clamped nodes get zero velocity and acceleration.
 
 Evaluations and fixed-step rollouts (and their gradients) run on the fast path
-(``meshodenet.fast``, ``engine = "fast"``); ``engine = "reference"`` runs the module-by-module
-definition (``meshodenet.reference``). Same numbers up to float round-off (docs/TRAINING.md).
+(``meshodenet.fast``, config ``engine = "fast"``); ``engine = "reference"`` runs the
+module-by-module definition (``meshodenet.reference``). Same numbers up to float round-off
+(docs/TRAINING.md).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import torch
 
@@ -34,26 +36,17 @@ from meshodenet.graph import GraphTopology
 from meshodenet.integrators import GRADIENT_MODES, INTEGRATORS
 from meshodenet.interface import TrajectoryModel
 from meshodenet.layers import ACTIVATIONS, EncodeProcessDecode
-
-
-def _check_int(obj, name, lo):
-    v = getattr(obj, name)
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-        raise ValueError(f"{type(obj).__name__}.{name} must be an int >= {lo}, got {v!r}")
-
-
-def check_fraction(owner: str, name: str, value) -> None:
-    """A number in ``[0, 1]`` (not a bool), else one line naming ``owner.name`` and the value."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) \
-            or not math.isfinite(value) or not 0 <= value <= 1:
-        raise ValueError(f"{owner}.{name} must be a number in [0, 1], got {value!r}")
-
-
-def check_nonnegative(owner: str, name: str, value) -> None:
-    """A finite number ``>= 0`` (not a bool), else one line naming ``owner.name`` and the value."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) \
-            or not math.isfinite(value) or value < 0:
-        raise ValueError(f"{owner}.{name} must be a finite number >= 0, got {value!r}")
+from meshodenet.models.common import (
+    check_choice,
+    check_engine,
+    check_fraction,
+    check_int,
+    check_nonnegative,
+    check_preset,
+    paper_train_config,
+)
+from meshodenet.network import FastField
+from meshodenet.train import TrainConfig
 
 
 def release_count(fraction: float, n: int, generator=None) -> int:
@@ -69,59 +62,35 @@ def release_count(fraction: float, n: int, generator=None) -> int:
     return k
 
 
-def _check_choice(obj, name, valid):
-    v = getattr(obj, name)
-    if v not in valid:
-        raise ValueError(f"{type(obj).__name__}.{name} must be one of "
-                         f"{', '.join(sorted(valid))}; got {v!r}")
-
-
 @dataclass(frozen=True)
 class MeshODENetConfig:
-    """Architecture, integrator and gradient mode of MeshODENet.
+    """Architecture, integrator, gradient mode and training windows of MeshODENet.
 
-    - ``hidden``, ``layers``, ``mlp_hidden_layers``, ``activation``: the GNN (paper: 128 wide,
-      1 message-passing layer; MLPs of two hidden layers with ReLU as in the authors' code).
-    - ``integrator``: a key of ``INTEGRATORS``; ``substeps`` steps per saved interval for the
-      fixed-step ones (paper: rk4, 1); ``rtol``/``atol`` for ``dopri5`` only (setting them for a
-      fixed-step scheme is an error rather than silently ignored).
-    - ``grad_mode``: ``direct``, ``checkpoint`` (segments of ``checkpoint_every`` intervals) or
-      ``adjoint`` (``seminorm`` on or off).
-    - ``shooting``: 0 trains on whole rollouts from the initial state (the paper). ``S > 0``
-      is multiple shooting: each trajectory is cut into ``floor(n_intervals / S)`` windows of
-      ``S`` intervals (shifted together by a random offset each time they are drawn), each
-      restarted from the ground-truth state at its first frame; a training sample is then a
-      window. With ``shooting_epochs = E > 0`` the horizon doubles every ``E`` epochs until
-      whole trajectories are rolled out from their initial state, as in the paper: a
-      curriculum that learns the local dynamics cheaply first and the long-time stability
-      that only long rollouts teach last (trained on 1-4 s windows only, rollouts of the
-      falling rod diverge after about 5 s; switching from 1 s windows straight to 20 s
-      rollouts can overflow). ``E = 0`` keeps ``S`` throughout.
-    - ``youngs_feature``: ``linear`` (the paper: the modulus itself) or ``log`` (its logarithm),
-      see ``meshodenet.features.YOUNGS_FEATURES``.
-    - ``rest_position``: add the node's rest coordinates to its static features (not in the
-      paper; ``meshodenet.features.static_node_features``).
-    - ``release_fraction``: with windows shorter than the trajectory, this fraction of each
-      training batch's windows start at frame 0 (the release from rest) instead of their drawn
-      start (not in the paper; the release transient is otherwise in about one window in
-      ``n_intervals / S``). ``p n`` windows of a batch of ``n``, rounded up or down at random
-      with the trainer's generator (drawn only when ``p n`` is not an integer); 0 (default)
-      draws nothing and changes nothing.
-    - ``frame_weight``: the exponent ``p`` in [0, 1] of the loss's weight per frame of a
-      training window (not in the paper): frame ``d`` intervals after the window's start
-      weighs ``s_d^-p``, ``s_d`` the mean square displacement of the nodes ``d`` intervals
-      after a window's start on the training split (the loss of standing still at that
-      frame). 0 (default, the paper) weighs every frame the same, so the late frames' large
-      errors dominate; 1 weighs each frame's error relative to standing still at it; the
-      loss of standing still is 1 for every ``p`` (``MeshODENet.training_loss``).
-    - ``release_weight``: ``lambda >= 0`` (not in the paper). Adds ``lambda`` times the mean
-      square position error one interval after the release, each of the batch's trajectories
-      stepped once from its first frame (the release from rest), divided by that of standing
-      still on the training split: a term that is 1 for standing still, so the loss of
-      standing still is ``1 + lambda``. The first interval after the release is one frame of
-      a whole rollout (of 200 for the rod) and its error is small beside the late frames', so
-      without it the trajectory loss does not teach the release within a short training
-      (docs/TRAINING.md, "Release weight"). 0 (default) adds nothing.
+    - ``hidden``, ``layers``, ``mlp_hidden_layers``, ``activation``: latent width,
+      message-passing layers, hidden layers per MLP, activation (paper: 128, 1, 2, ReLU).
+    - ``integrator``: a key of ``INTEGRATORS``; ``substeps``: steps per saved interval of the
+      fixed-step ones; ``rtol``/``atol``: tolerances of ``dopri5`` only (``None``: 1e-4 /
+      1e-7; set for a fixed-step scheme, an error).
+    - ``grad_mode``: ``direct``, ``checkpoint`` (segments of ``checkpoint_every`` intervals)
+      or ``adjoint`` (``seminorm`` on or off).
+    - ``shooting``: 0 trains on whole rollouts from the initial state (the paper); ``S > 0``
+      on windows of ``S`` intervals, ``floor(n_intervals / S)`` per trajectory shifted
+      together by a random offset, each started from the ground truth at its first frame.
+      ``shooting_epochs = E > 0`` doubles the window every ``E`` epochs up to whole
+      trajectories (``horizon``); 0 keeps ``S``.
+    - ``youngs_feature``: ``linear`` (the modulus in Pa, the paper) or ``log``;
+      ``rest_position``: the nodes' rest coordinates (m) as static features
+      (``meshodenet.features``).
+    - ``release_fraction`` in [0, 1]: share of a batch's windows started at frame 0 instead
+      of their drawn start (``release_count``).
+    - ``frame_weight`` ``p`` in [0, 1]: frame ``d`` of a window weighs ``s_d^-p``, ``s_d`` the
+      no-motion loss at that frame; 0 weighs all frames the same (``training_loss``).
+    - ``release_weight`` ``lambda >= 0``: adds ``lambda`` times the error of one step from
+      frame 0, relative to standing still (``_release_loss``).
+    - ``engine``, ``message_passing``: how the network is evaluated
+      (``meshodenet.models.common.ENGINES``, ``MESSAGE_PASSING``); not the model itself.
+
+    Every field beyond the paper's defaults to its behaviour; experiments: docs/TRAINING.md.
     """
 
     hidden: int = 128
@@ -142,8 +111,11 @@ class MeshODENetConfig:
     release_fraction: float = 0.0
     frame_weight: float = 0.0
     release_weight: float = 0.0
+    engine: str = "fast"
+    message_passing: str = "pyg"
 
     def __post_init__(self):
+        check_engine(self)
         check_fraction("MeshODENetConfig", "release_fraction", self.release_fraction)
         check_fraction("MeshODENetConfig", "frame_weight", self.frame_weight)
         check_nonnegative("MeshODENetConfig", "release_weight", self.release_weight)
@@ -152,10 +124,10 @@ class MeshODENetConfig:
         for name, lo in (("hidden", 1), ("layers", 0), ("mlp_hidden_layers", 0),
                          ("substeps", 1), ("checkpoint_every", 1), ("shooting", 0),
                          ("shooting_epochs", 0)):
-            _check_int(self, name, lo)
-        _check_choice(self, "activation", ACTIVATIONS)
-        _check_choice(self, "integrator", INTEGRATORS)
-        _check_choice(self, "grad_mode", GRADIENT_MODES)
+            check_int(self, name, lo)
+        check_choice(self, "activation", ACTIVATIONS)
+        check_choice(self, "integrator", INTEGRATORS)
+        check_choice(self, "grad_mode", GRADIENT_MODES)
         adaptive = INTEGRATORS[self.integrator].adaptive
         for name in ("rtol", "atol"):
             v = getattr(self, name)
@@ -180,6 +152,40 @@ class MeshODENetConfig:
                 "atol": 1e-7 if self.atol is None else self.atol}
 
 
+# --- presets ---------------------------------------------------------------------------------
+#: ``quick`` per mesh kind: ``(TrainConfig fields, MeshODENetConfig fields)`` over the paper's
+#: optimiser. Rods: hidden 64, windows of 10 intervals doubling every epoch up to whole
+#: rollouts, lr 1e-3 with gradient clipping, / 10 for the last epoch. Plates: hidden 32,
+#: windows of 16 intervals throughout, 24 epochs of 24 steps of 4, / 10 from epoch 19, no
+#: weight decay, rest coordinates. Measured and why: docs/TRAINING.md, "Presets".
+QUICK = {
+    "line": (dict(epochs=10, lr=1e-3, lr_milestones=(9,), batch_size=8, grad_clip=1.0),
+             dict(hidden=64, shooting=10, shooting_epochs=1)),
+    "triangle": (dict(epochs=24, lr=1e-3, lr_milestones=(18,), batch_size=4, grad_clip=1.0,
+                      max_batches=24, weight_decay=0.0),
+                 dict(hidden=32, shooting=16, shooting_epochs=0, rest_position=True)),
+}
+
+
+def meshodenet_presets(preset: str, kind: str) -> tuple[TrainConfig, MeshODENetConfig]:
+    """``(TrainConfig, MeshODENetConfig)`` of ``preset`` for a mesh of ``kind``: ``paper`` the
+    paper's model (hidden 128, 1 message-passing layer, MLPs of 2 hidden layers, rk4 with the
+    step equal to the sampling interval, whole rollouts, ``checkpoint`` gradients) and
+    optimiser, one trajectory per step; ``quick`` with ``QUICK``; ``smoke`` a tiny model,
+    2 epochs of 3 steps, for tests."""
+    check_preset(preset)
+    base = paper_train_config(kind)
+    if preset == "paper":
+        return base, MeshODENetConfig()
+    if preset == "quick":
+        t, m = QUICK[kind]
+        return TrainConfig(**{**asdict(base), **t}), MeshODENetConfig(**m)
+    return (TrainConfig(**{**asdict(base), "epochs": 2, "lr": 1e-3, "lr_milestones": (),
+                           "batch_size": 4, "max_batches": 3}),
+            MeshODENetConfig(hidden=16, mlp_hidden_layers=1, shooting=5))
+
+
+# --- the model ---------------------------------------------------------------------------------
 #: The fixed part of a rollout (graph, normalised static features, normaliser slices).
 FieldContext = GraphContext
 
@@ -192,9 +198,6 @@ class MeshODENet(TrajectoryModel):
     """
 
     name = "meshodenet"
-    #: ``"fast"`` (``meshodenet.fast``) or ``"reference"`` (``meshodenet.reference``): same
-    #: numbers up to float round-off; not part of the config or the checkpoint.
-    engine = fast.default_engine()
 
     def __init__(self, mesh: Mesh, config: MeshODENetConfig, train: Trajectories | None = None,
                  hinges=None):
@@ -208,8 +211,15 @@ class MeshODENet(TrajectoryModel):
             self.stats.compute(self.topology, train)
         self.gnn = EncodeProcessDecode(
             n_node_features(self.kind, config.rest_position), EDGE_STATIC + EDGE_DYNAMIC, 3, config.hidden,
-            config.layers, config.mlp_hidden_layers, config.activation, layer_norm=False)
+            config.layers, config.mlp_hidden_layers, config.activation, layer_norm=False,
+            message_passing=config.message_passing)
         self.nfe = 0
+
+    @property
+    def engine(self) -> str:
+        """The config's ``engine``: ``fast`` (``meshodenet.fast``) or ``reference``
+        (``meshodenet.reference``)."""
+        return self.config.engine
 
     # --- the vector field -------------------------------------------------------------------
     def field_context(self, youngs: torch.Tensor, dtype=None) -> FieldContext:
@@ -222,14 +232,14 @@ class MeshODENet(TrajectoryModel):
         ``field_fn``.)"""
         if self.engine == "reference":
             return reference.vector_field(self, z, ctx)
-        return fast.evaluate(fast.FastField(self, ctx), z)
+        return fast.evaluate(FastField(self, ctx), z)
 
     def field_fn(self, ctx: FieldContext):
         """``z -> dz/dt`` on ``ctx`` with everything that does not depend on ``z`` built once;
         valid while the parameters do not change (rollouts and the solvers use it)."""
         if self.engine == "reference":
             return lambda z: reference.vector_field(self, z, ctx)
-        field = fast.FastField(self, ctx)
+        field = FastField(self, ctx)
         return lambda z: fast.evaluate(field, z)
 
     def forward(self, z: torch.Tensor, ctx: FieldContext) -> torch.Tensor:
@@ -246,7 +256,7 @@ class MeshODENet(TrajectoryModel):
         if scheme.adaptive or (c.grad_mode == "adjoint" and torch.is_grad_enabled()):
             f = self.field_fn(ctx)
             return reference.integrate(self, z0, t, ctx, field=lambda model, z, ctx_: f(z))
-        return fast.rollout(fast.FastField(self, ctx), scheme, z0, t, c.substeps)
+        return fast.rollout(FastField(self, ctx), scheme, z0, t, c.substeps)
 
     # --- TrajectoryModel ----------------------------------------------------------------------
     def rollout(self, x0, v0, youngs, t):
