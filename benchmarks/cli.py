@@ -14,7 +14,7 @@ import threading
 from pathlib import Path
 
 COMMANDS = ["generate", "simulate", "export", "crosscheck", "compare", "train", "rollout",
-            "bench", "run", "tolerance"]
+            "bench", "run", "tolerance", "convert_checkpoint"]
 
 
 def build_parser() -> argparse.ArgumentParser:

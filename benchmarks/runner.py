@@ -172,7 +172,9 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
     rec_path = run_dir / RECORD_FILE
     if rec_path.exists():
         rec = json.loads(rec_path.read_text())
-        if with_defaults(rec.get("config")) == config and (run_dir / METRICS_FILE).exists():
+        same_ids = all(rec.get(k) == getattr(spec, k) for k in ("case", "model", "preset", "seed"))
+        if with_defaults(rec.get("config")) == config and rec.get("run") == spec.run_id \
+                and same_ids and (run_dir / METRICS_FILE).exists():
             rec["reused"] = True
             return rec
     # every input is checked before the first epoch: a corrupt test split fails now
@@ -185,11 +187,13 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
         except (OSError, json.JSONDecodeError):
             old, why = None, "config.json is unreadable"
         if with_defaults(old) == config and (run_dir / "last.pt").exists():
-            from meshodenet.train import CheckpointError, load_checkpoint
+            from meshodenet.train import CheckpointError, UnsafeCheckpointError, load_checkpoint
 
             try:
                 load_checkpoint(run_dir / "last.pt")
                 resume = True
+            except UnsafeCheckpointError:  # kept for the user to convert, never retrained over
+                raise
             except CheckpointError as e:
                 why = f"{e}"
         if not resume:
@@ -395,11 +399,21 @@ def runs_table(records: list) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _run_metrics(runs_dir: Path, rec: dict) -> pd.DataFrame:
+    """A run's ``test_metrics.csv``; its ids name figure files, so they must be the run's."""
+    path = runs_dir / rec["run"] / METRICS_FILE
+    df = pd.read_csv(path)
+    for col in ("run", "case"):
+        if col not in df or set(df[col].astype(str)) != {rec[col]}:
+            raise ValueError(f"{path}: column {col!r} is not {rec[col]!r} throughout; delete "
+                             f"{path.parent} and rerun to retrain it")
+    return df
+
+
 def write_results(out: Path, records: list, runs_dir: Path, suite: Suite, *,
                   figures: bool = True, data_dir=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
-    metrics = pd.concat([pd.read_csv(runs_dir / r["run"] / METRICS_FILE) for r in records],
-                        ignore_index=True)
+    metrics = pd.concat([_run_metrics(runs_dir, r) for r in records], ignore_index=True)
     steps = {c: M.table_steps(c, int(metrics.loc[metrics["case"] == c, "step"].max()) + 1)
              for c in metrics["case"].unique()}
     table = M.rmse_at_step_table(

@@ -166,13 +166,15 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
     if evaluate and test_file.exists():  # every input is checked before the first epoch
         store.load_split(case, "test", data_dir)
     if resume:
-        from meshodenet.train import CheckpointError, load_checkpoint
+        from meshodenet.train import CheckpointError, UnsafeCheckpointError, load_checkpoint
 
         if not (out / "last.pt").exists():
             raise FileNotFoundError(f"--resume: {out / 'last.pt'} does not exist; run without "
                                     "--resume to start this run")
         try:
             load_checkpoint(out / "last.pt")
+        except UnsafeCheckpointError as e:  # its message says how to convert a trusted one
+            raise UnsafeCheckpointError(f"--resume: {e}") from None
         except CheckpointError as e:
             raise CheckpointError(f"--resume: {e}; this run cannot continue: start it again "
                                   f"with `rm -r {out}` and the same command without --resume"
@@ -264,11 +266,13 @@ def _load_run(run_dir: Path, checkpoint: str, device: str):
     except (OSError, json.JSONDecodeError) as e:
         raise ValueError(f"{cfg_path}: unreadable ({e}); retrain the run (meshbench train "
                          "--out DIR) or restore the file") from None
-    from meshodenet.train import CheckpointError
+    from meshodenet.train import CheckpointError, UnsafeCheckpointError
 
     path = run_dir / f"{checkpoint}.pt"
     try:
         model, ck = load_model(path, pick_device(device))
+    except UnsafeCheckpointError:
+        raise
     except CheckpointError as e:
         raise CheckpointError(f"{e}; retrain the run (meshbench train --out {run_dir} ...) or "
                               "restore the file") from None
