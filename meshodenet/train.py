@@ -406,11 +406,13 @@ def load_checkpoint(path: Path, device="cpu") -> dict:
         raise FileNotFoundError(f"{path}: no checkpoint here; train first (meshbench train)")
     try:
         ck = torch.load(path, map_location=device, weights_only=True)
-    except pickle.UnpicklingError as e:  # the restricted unpickler met a global it refuses
-        msg = _first_line(e)
+    except pickle.UnpicklingError as e:
+        if not any(w in str(e) for w in REFUSALS):
+            raise CheckpointError(f"{path}: not a readable checkpoint (truncated, corrupt or "
+                                  f"not written by torch.save: {_first_line(e)[:120]})") from None
         raise UnsafeCheckpointError(f"{path}: refused: it holds objects other than tensors "
-                                    f"and plain containers ({msg[:100]}); {convert_hint(path)}"
-                                    ) from None
+                                    f"and plain containers ({_first_line(e)[:100]}); "
+                                    f"{convert_hint(path)}") from None
     except Exception as e:  # noqa: BLE001 - torch raises many kinds for a bad file
         raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt: "
                               f"{_first_line(e)[:120]})") from None
@@ -425,12 +427,19 @@ def check_keys(path: Path, ck) -> dict:
     return ck
 
 
+#: Words of torch's restricted unpickler when it meets an object it does not rebuild (other
+#: errors of it, such as an unknown opcode, mean a damaged or non-torch file).
+REFUSALS = ("GLOBAL", "allowlisted", "Can only", "must be imported", "unrecognized function")
+
+
 def _first_line(e: BaseException) -> str:
-    text = str(e).strip()
-    for line in text.splitlines():  # torch's message starts with a generic line
-        if "GLOBAL" in line or "Unsupported" in line:
-            return line.strip()
-    return text.splitlines()[0] if text else type(e).__name__
+    """The reason in an exception's message: its first line, or for torch's weights-only
+    errors the line between its generic advice and its pointer to the documentation."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    if lines and lines[0].startswith("Weights only load failed"):
+        lines = [ln for ln in lines[1:] if not ln.startswith(
+            ("Please file an issue", "Check the documentation"))] or lines
+    return lines[0] if lines else type(e).__name__
 
 
 def convert_checkpoint(path: Path) -> bool:
