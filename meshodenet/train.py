@@ -11,16 +11,20 @@ RNG states, epoch, best score, history), ``best.pt`` when the validation RMSE im
 
 from __future__ import annotations
 
+import collections
 import csv
+import dataclasses
 import io
 import math
 import os
+import pickle
 import sys
 import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -315,10 +319,62 @@ def _atomic_bytes(path: Path, data: bytes) -> None:
         raise
 
 
+#: What a checkpoint may hold: tensors and plain containers of plain values, exactly what
+#: ``torch.load(..., weights_only=True)`` rebuilds without running code from the file.
+#: ``OrderedDict`` (state dicts) and ``Counter`` (``MultiStepLR``'s milestones) keep their type.
+PLAIN_SCALARS = (bool, int, float, str, type(None))
+PLAIN_CONTAINERS = (collections.OrderedDict, collections.Counter, dict, list, tuple)
+TORCH_VALUES = (torch.Size, torch.dtype, torch.device)
+
+
+def plain(obj, where: str = "checkpoint", convert: bool = False):
+    """``obj`` with numpy scalars turned into Python numbers (exactly), every container
+    rebuilt as its plain type; ``TypeError`` naming ``where[key]...`` for any other object.
+    ``convert=True`` (``meshbench convert-checkpoint`` only) also turns numpy arrays into
+    lists, dataclasses into dicts and paths into strings."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach() if isinstance(obj, torch.nn.Parameter) else obj
+    if type(obj) in PLAIN_SCALARS or type(obj) in TORCH_VALUES:
+        return obj
+    if isinstance(obj, np.generic) and isinstance(obj.item(), PLAIN_SCALARS):
+        return obj.item()
+    for t in PLAIN_CONTAINERS:
+        if isinstance(obj, t):
+            return _plain_container(obj, t, where, convert)
+    if convert:
+        if isinstance(obj, np.ndarray):
+            return plain(obj.tolist(), where, convert)
+        if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+            return plain(dataclasses.asdict(obj), where, convert)
+        if isinstance(obj, os.PathLike):
+            return os.fspath(obj)
+    raise TypeError(f"{where}: a {type(obj).__module__}.{type(obj).__qualname__} cannot be "
+                    "stored in a checkpoint (tensors and plain containers only)")
+
+
+def _plain_container(obj, kind: type, where: str, convert: bool):
+    if kind in (list, tuple):
+        return kind(plain(v, f"{where}[{i}]", convert) for i, v in enumerate(obj))
+    out = {}
+    for k, v in obj.items():
+        key = plain(k, f"{where} key {k!r}", convert)
+        if type(key) not in (str, int):
+            raise TypeError(f"{where}: key {k!r} is not a str or int")
+        out[key] = plain(v, f"{where}[{k!r}]", convert)
+    if kind is dict:
+        return out
+    out = kind(out)
+    meta = getattr(obj, "_metadata", None)  # a state dict's module versions (load_state_dict)
+    if meta is not None:
+        out._metadata = plain(meta, f"{where}._metadata", convert)
+    return out
+
+
 def save_checkpoint(path: Path, obj: dict) -> None:
-    """``torch.save`` to a temporary file in the same directory, fsync, then rename."""
+    """``torch.save`` of ``plain(obj)`` to a temporary file in the same directory, fsync,
+    then rename. The file loads with ``weights_only=True`` (``load_checkpoint``)."""
     buf = io.BytesIO()
-    torch.save(obj, buf)
+    torch.save(plain(obj, str(path)), buf)
     _atomic_bytes(Path(path), buf.getvalue())
 
 
@@ -326,26 +382,90 @@ class CheckpointError(ValueError):
     """A checkpoint file is truncated, corrupt or not one of ours."""
 
 
+class UnsafeCheckpointError(CheckpointError):
+    """A checkpoint holds objects whose unpickling could run code (an old-format or foreign
+    file); it is never loaded unless the user converts it explicitly."""
+
+
 CHECKPOINT_KEYS = ("model", "optimizer", "scheduler", "generator", "torch_rng", "epoch",
                    "best_val_rmse", "best_epoch", "history", "model_info")
 
 
+def convert_hint(path: Path) -> str:
+    return (f"if you trust where it came from, convert it with `meshbench convert-checkpoint "
+            f"{path} --i-trust-this-file` (that loads it with full unpickling, once)")
+
+
 def load_checkpoint(path: Path, device="cpu") -> dict:
-    """``torch.load`` a checkpoint written by ``fit``; ``CheckpointError`` (one line, naming
-    the file) when it is truncated, corrupt or foreign."""
+    """``torch.load(..., weights_only=True)`` a checkpoint written by ``fit``: tensors and
+    plain containers only, nothing in the file is executed. ``UnsafeCheckpointError`` for a
+    file that holds other objects, ``CheckpointError`` (one line, naming the file) when it is
+    truncated, corrupt or foreign."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no checkpoint here; train first (meshbench train)")
     try:
-        ck = torch.load(path, map_location=device, weights_only=False)
+        ck = torch.load(path, map_location=device, weights_only=True)
+    except pickle.UnpicklingError as e:
+        if not any(w in str(e) for w in REFUSALS):
+            raise CheckpointError(f"{path}: not a readable checkpoint (truncated, corrupt or "
+                                  f"not written by torch.save: {_first_line(e)[:120]})") from None
+        raise UnsafeCheckpointError(f"{path}: refused: it holds objects other than tensors "
+                                    f"and plain containers ({_first_line(e)[:100]}); "
+                                    f"{convert_hint(path)}") from None
     except Exception as e:  # noqa: BLE001 - torch raises many kinds for a bad file
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt: "
-                              f"{msg[:120]})") from None
+                              f"{_first_line(e)[:120]})") from None
+    return check_keys(path, ck)
+
+
+def check_keys(path: Path, ck) -> dict:
+    """``ck`` if it is a dict with every key ``fit`` writes, else ``CheckpointError``."""
     missing = [k for k in CHECKPOINT_KEYS if k not in ck] if isinstance(ck, dict) else ["all"]
     if missing:
         raise CheckpointError(f"{path}: not a meshbench checkpoint (missing {missing})")
     return ck
+
+
+#: Words of torch's restricted unpickler when it meets an object it does not rebuild (other
+#: errors of it, such as an unknown opcode, mean a damaged or non-torch file).
+REFUSALS = ("GLOBAL", "allowlisted", "Can only", "must be imported", "unrecognized function")
+
+
+def _first_line(e: BaseException) -> str:
+    """The reason in an exception's message: its first line, or for torch's weights-only
+    errors the line between its generic advice and its pointer to the documentation."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    if lines and lines[0].startswith("Weights only load failed"):
+        lines = [ln for ln in lines[1:] if not ln.startswith(
+            ("Please file an issue", "Check the documentation"))] or lines
+    return lines[0] if lines else type(e).__name__
+
+
+def convert_checkpoint(path: Path) -> bool:
+    """Rewrite a trusted old-format checkpoint as one ``load_checkpoint`` accepts: load it
+    with full unpickling (``weights_only=False``: THIS RUNS ANY CODE THE FILE CARRIES, so only
+    for a file the user vouches for), turn numpy values, dataclasses and paths into plain
+    values (``plain(..., convert=True)``) and save it atomically in place. Returns False,
+    writing nothing, when the file already loads safely."""
+    path = Path(path)
+    try:
+        load_checkpoint(path)
+        return False
+    except UnsafeCheckpointError:
+        try:
+            ck = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as e:  # noqa: BLE001 - torch raises many kinds for a bad file
+            raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt: "
+                                  f"{_first_line(e)[:120]})") from None
+        check_keys(path, ck)
+    try:
+        ck = plain(ck, str(path), convert=True)
+    except TypeError as e:
+        raise CheckpointError(f"{e}; this file cannot be converted") from None
+    save_checkpoint(path, ck)
+    load_checkpoint(path)  # what was written loads safely
+    return True
 
 
 def write_history(path: Path, rows: list) -> None:

@@ -187,3 +187,29 @@ def test_worker_killed_mid_run_is_resumed_by_the_next_invocation(root, tmp_path)
         if client.poll() is None:
             client.kill()
         cl.close()
+
+
+def test_local_cluster_listens_on_loopback_only():
+    """The LocalCluster the suite starts: every socket it listens on (scheduler, its HTTP
+    server, nanny, worker) is bound to 127.0.0.1, and no dashboard is served."""
+    import urllib.error
+    import urllib.request
+
+    import psutil
+
+    from benchmarks.suite.cluster import connect
+
+    client, cluster = connect(None, 1)
+    try:
+        assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
+        port = client.scheduler_info()["services"]["dashboard"]  # dask's name for HTTP
+        with pytest.raises(urllib.error.HTTPError, match="404"):
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=10)
+        me = psutil.Process()
+        listening = [c.laddr for p in [me, *me.children(recursive=True)]
+                     for c in p.net_connections("inet") if c.status == psutil.CONN_LISTEN]
+        assert len(listening) >= 4, listening  # scheduler + HTTP, nanny, worker
+        assert {a.ip for a in listening} == {"127.0.0.1"}, listening
+    finally:
+        client.close()
+        cluster.close()

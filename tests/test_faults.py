@@ -367,7 +367,7 @@ def test_bad_last_checkpoint_under_resume_is_clean_and_not_a_session(tmp_path, t
     elif damage == "foreign":
         torch.save({"weights": torch.zeros(3)}, r / "last.pt")
     else:  # a meshbench checkpoint whose tensors do not fit this run's model
-        ck = torch.load(r / "last.pt", weights_only=False)
+        ck = torch.load(r / "last.pt", weights_only=True)
         ck["model"] = {k: torch.zeros(1) for k in ck["model"]}
         torch.save(ck, r / "last.pt")
     sessions = (r / "sessions.json").read_bytes()

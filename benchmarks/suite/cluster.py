@@ -67,8 +67,12 @@ def connect(scheduler: str | None, n_workers: int):
             return Client(scheduler, timeout="20s"), None
         except (OSError, TimeoutError) as e:
             raise ValueError(f"--scheduler {scheduler!r}: cannot connect ({e})") from None
+    # loopback only: no other machine can reach the scheduler, whose clients may submit any
+    # code (docs/CLUSTER.md, "Securing a shared scheduler"); its HTTP server (health, metrics)
+    # always starts, so it is bound to loopback too, on a free port, without the dashboard
     cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, host="127.0.0.1")
+                           host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                           worker_dashboard_address=None, scheduler_kwargs={"dashboard": False})
     return Client(cluster), cluster
 
 

@@ -16,6 +16,7 @@ import numpy as np
 from tqdm import tqdm
 
 from benchmarks.suite import plugins, procs
+from benchmarks.suite.registry import safe_id
 from groundtruth import store
 from groundtruth.cases import SPLITS
 
@@ -46,7 +47,7 @@ def _simulate_one(case, youngs: float, out: str) -> str:
 
 def _load_partial(path: Path, youngs: float):
     try:
-        with np.load(path) as z:
+        with np.load(path, allow_pickle=False) as z:
             if float(z["youngs"]) == youngs:
                 return z["pos"], z["vel"], z["t"]
     except (OSError, ValueError, KeyError, EOFError):
@@ -80,7 +81,7 @@ def generate(case, root=None, workers: int | None = None, force: bool = False,
     and then reuses its files.
     """
     root = store.data_dir(root)
-    case_dir = root / case.id
+    case_dir = root / safe_id(case.id, "case id")
     if not force and _current(case_dir, case.hash()):
         return GenerateReport(case.id, case_dir, True, 0.0, 0)
     with procs.DirLock(root, f".{case.id}.lock").acquire(wait=True, on_wait=on_wait):

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import re
+
 from groundtruth.cases import InPlanePlateCase, PlateCase, RodCase
 from meshbench_registry import RegistryError, lookup
 
-__all__ = ["CASES", "RegistryError", "get_case", "lookup", "register_case"]
+__all__ = ["CASES", "RegistryError", "get_case", "lookup", "register_case", "safe_id"]
 
 CASES: dict = {
     "rod_falling": RodCase(),
@@ -27,12 +29,29 @@ CASES: dict = {
 }
 
 
+#: An id that names a file or directory (case, model, preset, suite, run tag, ...): letters,
+#: digits, '_', '.', '-'; not starting with '.', so never '..' or a hidden file.
+SAFE_ID = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
+
+
+def safe_id(value, field: str) -> str:
+    """``value`` if it is a non-empty ``SAFE_ID``, else ``ValueError`` naming ``field``: ids
+    become directory and file names under the data, runs and results directories, and one
+    with a path separator or '..' could write outside them."""
+    if not isinstance(value, str) or not SAFE_ID.fullmatch(value):
+        raise ValueError(f"{field} must be an id of letters, digits, '_', '.' and '-' that does "
+                         f"not start with '.' (it names a directory), got {value!r}")
+    return value
+
+
 def get_case(case_id: str):
     return lookup(CASES, case_id, "case")
 
 
 def register_case(case, overwrite: bool = False):
-    """Add a case object (with an ``id``) to ``CASES``; refuses to replace one silently."""
+    """Add a case object (with an ``id``, a ``safe_id``) to ``CASES``; refuses to replace
+    one silently."""
+    safe_id(getattr(case, "id", None), "case id")
     if case.id in CASES and not overwrite:
         raise ValueError(f"case id {case.id!r} is already registered; pass overwrite=True")
     CASES[case.id] = case

@@ -195,7 +195,9 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
     resolved = resolve_run(spec.case, spec.model, spec.preset, data_dir=data_dir,
                            overrides=overrides)
     config = resolved["config"]
-    decision = decide_run(run_dir, config, finished=(RECORD_FILE, METRICS_FILE))
+    decision = decide_run(run_dir, config, finished=(RECORD_FILE, METRICS_FILE),
+                          ids={"run": spec.run_id, **{k: getattr(spec, k) for k in
+                                                      ("case", "model", "preset", "seed")}})
     if decision.action == "reuse":
         return {**decision.stored, "reused": True}
     # every input is checked before the first epoch: a corrupt test split fails now
@@ -400,11 +402,21 @@ def runs_table(records: list) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _run_metrics(runs_dir: Path, rec: dict) -> pd.DataFrame:
+    """A run's ``test_metrics.csv``; its ids name figure files, so they must be the run's."""
+    path = runs_dir / rec["run"] / METRICS_FILE
+    df = pd.read_csv(path)
+    for col in ("run", "case"):
+        if col not in df or set(df[col].astype(str)) != {rec[col]}:
+            raise ValueError(f"{path}: column {col!r} is not {rec[col]!r} throughout; delete "
+                             f"{path.parent} and rerun to retrain it")
+    return df
+
+
 def write_results(out: Path, records: list, runs_dir: Path, suite: Suite, *,
                   figures: bool = True, data_dir=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
-    metrics = pd.concat([pd.read_csv(runs_dir / r["run"] / METRICS_FILE) for r in records],
-                        ignore_index=True)
+    metrics = pd.concat([_run_metrics(runs_dir, r) for r in records], ignore_index=True)
     steps = {c: M.table_steps(c, int(metrics.loc[metrics["case"] == c, "step"].max()) + 1)
              for c in metrics["case"].unique()}
     table = M.rmse_at_step_table(

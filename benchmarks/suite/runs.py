@@ -175,26 +175,31 @@ def _changes(old: dict, new: dict, ignore: tuple) -> list[str]:
     return [d for d in _diff(old, new) if not d.startswith(ignore)]
 
 
-def _finished_record(out: Path, config: dict, finished: tuple) -> dict | None:
+def _finished_record(out: Path, config: dict, finished: tuple, ids: dict) -> dict | None:
     """The record (``finished[0]``, JSON with the run's ``config``) of a finished run of
-    ``config`` whose outputs ``finished[1:]`` are all present, else None."""
+    ``config`` whose outputs ``finished[1:]`` are all present and whose ``ids`` (run, case,
+    model, ...) are the expected ones, else None."""
     rec_path = out / finished[0]
     if not rec_path.exists():
         return None
     rec = json.loads(rec_path.read_text())
     done = all((out / name).exists() for name in finished[1:])
-    return rec if done and with_defaults(rec.get("config")) == config else None
+    same_ids = all(rec.get(k) == v for k, v in ids.items())
+    return rec if done and same_ids and with_defaults(rec.get("config")) == config else None
 
 
-def decide_run(out, config: dict, *, finished: tuple = (), ignore: tuple = ()) -> RunDecision:
+def decide_run(out, config: dict, *, finished: tuple = (), ids: dict | None = None,
+               ignore: tuple = ()) -> RunDecision:
     """Decide what to do with run directory ``out`` for the resolved ``config``: reuse it
     when ``finished`` (a record file, then the outputs of a finished run) says it is done,
     resume it when its ``config.json`` matches (up to the ``ignore`` prefixes) and its
-    ``last.pt`` loads, else retrain it (or start fresh when nothing is stored)."""
-    from meshodenet.train import CheckpointError, load_checkpoint
+    ``last.pt`` loads, else retrain it (or start fresh when nothing is stored). A ``last.pt``
+    in the old unsafe format raises ``UnsafeCheckpointError``: it is kept for the user to
+    convert, never retrained over."""
+    from meshodenet.train import CheckpointError, UnsafeCheckpointError, load_checkpoint
 
     out = Path(out)
-    rec = _finished_record(out, config, finished) if finished else None
+    rec = _finished_record(out, config, finished, ids or {}) if finished else None
     if rec is not None:
         return RunDecision("reuse", stored=rec)
     cfg_path, last = out / CONFIG_FILE, out / "last.pt"
@@ -213,6 +218,8 @@ def decide_run(out, config: dict, *, finished: tuple = (), ignore: tuple = ()) -
                            stored=old)
     try:
         load_checkpoint(last)
+    except UnsafeCheckpointError:
+        raise
     except CheckpointError as e:
         return RunDecision("retrain", str(e), "bad_checkpoint", stored=old)
     return RunDecision("resume", stored=old)
@@ -245,13 +252,18 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
               progress: bool = True, on_epoch_end=None, evaluate: bool = True) -> dict:
     """``meshbench train``: train ``model_id`` on ``case_id`` into ``out`` (continue it with
     ``resume``); returns the summary it prints."""
+    from meshodenet.train import UnsafeCheckpointError
+
     t_start = time.time()
     out = Path(out)
     r = resolve_run(case_id, model_id, preset, data_dir=data_dir, overrides=overrides,
                     epochs=epochs)
     if evaluate and (store.data_dir(data_dir) / r["case"].id / "test.npz").exists():
         store.load_split(r["case"], "test", data_dir)  # every input checked before epoch 1
-    decision = decide_run(out, r["config"], ignore=RESUME_IGNORES) if resume else None
+    try:
+        decision = decide_run(out, r["config"], ignore=RESUME_IGNORES) if resume else None
+    except UnsafeCheckpointError as e:  # its message says how to convert a trusted one
+        raise UnsafeCheckpointError(f"--resume: {e}") from None
     _check_request(decision, out, resume)
     return train_resolved(r, out, decision, data_dir=data_dir, device=device,
                           progress=progress, on_epoch_end=on_epoch_end, evaluate=evaluate,
@@ -352,11 +364,13 @@ def _load_run(run_dir: Path, checkpoint: str, device: str):
     except (OSError, json.JSONDecodeError) as e:
         raise ValueError(f"{cfg_path}: unreadable ({e}); retrain the run (meshbench train "
                          "--out DIR) or restore the file") from None
-    from meshodenet.train import CheckpointError
+    from meshodenet.train import CheckpointError, UnsafeCheckpointError
 
     path = run_dir / f"{checkpoint}.pt"
     try:
         model, ck = load_model(path, pick_device(device))
+    except UnsafeCheckpointError:
+        raise
     except CheckpointError as e:
         raise CheckpointError(f"{e}; retrain the run (meshbench train --out {run_dir} ...) or "
                               "restore the file") from None

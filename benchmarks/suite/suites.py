@@ -14,7 +14,7 @@ from __future__ import annotations
 import fnmatch
 from dataclasses import dataclass, replace
 
-from benchmarks.suite.registry import lookup
+from benchmarks.suite.registry import lookup, safe_id
 
 
 @dataclass(frozen=True)
@@ -34,10 +34,11 @@ class RunSpec:
     tag: str = ""
 
     def __post_init__(self):
-        for name in ("case", "model", "preset"):
-            v = getattr(self, name)
-            if not isinstance(v, str) or not v or "/" in v:
-                raise ValueError(f"RunSpec.{name} must be a non-empty id without '/', got {v!r}")
+        for name in ("case", "model", "preset"):  # the parts of run_id, a directory name
+            safe_id(getattr(self, name), f"RunSpec.{name}")
+        for name in ("integrator", "grad_mode", "tag"):
+            if getattr(self, name):
+                safe_id(getattr(self, name), f"RunSpec.{name}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"RunSpec.seed must be an int >= 0, got {self.seed!r}")
 
@@ -75,6 +76,9 @@ class Suite:
     seeds: int = 1
     notes: str = ""
     compare_rtol: float = 0.0
+
+    def __post_init__(self):
+        safe_id(self.name, "Suite.name")  # names RESULTS/NAME/
 
     def runs(self, seeds: int | None = None, only: str | None = None) -> list[RunSpec]:
         k = self.seeds if seeds is None else seeds
