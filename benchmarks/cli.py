@@ -14,7 +14,7 @@ import threading
 from pathlib import Path
 
 COMMANDS = ["generate", "simulate", "export", "crosscheck", "compare", "train", "rollout",
-            "bench", "run", "tolerance"]
+            "bench", "run", "tolerance", "animate"]
 
 
 def build_parser() -> argparse.ArgumentParser:
