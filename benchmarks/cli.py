@@ -14,8 +14,7 @@ import threading
 from pathlib import Path
 
 COMMANDS = ["generate", "simulate", "export", "crosscheck", "plate_fidelity", "compare", "train",
-            "rollout", "bench", "run", "tolerance",
-            "convert_checkpoint"]
+            "rollout", "animate", "bench", "run", "tolerance", "convert_checkpoint"]
 
 
 def build_parser() -> argparse.ArgumentParser:

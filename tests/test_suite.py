@@ -70,6 +70,12 @@ def test_smoke_suite_writes_every_result(smoke):
     for name in ("rmse_vs_step", "snapshots", "loss_curves"):
         png = out / "figures" / f"{name}_rod_cantilever.png"
         assert png.stat().st_size > 5000, png
+    from PIL import Image
+
+    for model in ("meshodenet", "mgn"):  # one animated test rollout per case and model
+        gif = out / "figures" / f"rollout_rod_cantilever_{model}.gif"
+        with Image.open(gif) as im:
+            assert im.n_frames == 60 and gif.stat().st_size < 500_000, gif
     # plain CSVs; the sidecar documents every file and the RMSE definition
     for name in ("runs", "metrics", "rmse_at_step"):
         assert not (out / f"{name}.csv").read_text().startswith("#")

@@ -1,6 +1,7 @@
 """Figures of a suite's results (``results/SUITE/figures/``), drawn from the CSVs and the runs'
 stored test rollouts: RMSE vs step per case, snapshots of predicted vs ground-truth shapes at
-the table's steps, and training / validation curves."""
+the table's steps, training / validation curves, and an animated rollout per case and model
+(``benchmarks/suite/animate.py``)."""
 
 from __future__ import annotations
 
@@ -153,6 +154,8 @@ def loss_curves(case: str, records: list, runs_dir: Path, path: Path) -> Path:
 def suite_figures(out: Path, metrics: pd.DataFrame, records: list, runs_dir: Path,
                   steps: dict, tests: dict) -> list:
     """``tests[case]``: the case's test-split arrays (ground truth of the snapshots)."""
+    from benchmarks.suite.animate import suite_animations
+
     out = Path(out)
     paths = []
     for case in sorted(metrics["case"].unique()):
@@ -162,4 +165,5 @@ def suite_figures(out: Path, metrics: pd.DataFrame, records: list, runs_dir: Pat
         paths.append(snapshots(case, seed0, runs_dir, steps[case], out / f"snapshots_{case}.png",
                                tests[case]))
         paths.append(loss_curves(case, recs, runs_dir, out / f"loss_curves_{case}.png"))
+        paths += suite_animations(out, case, seed0, runs_dir, tests[case])
     return paths

@@ -11,7 +11,8 @@ checkpoint out on the test split and scores it. Then it writes under ``RESULTS/S
   full-rollout RMSE (``metric`` column);
 - ``rmse_at_step.csv`` and ``.md``: the paper's table (mean and std over test trajectories at
   the paper's steps, and the increase over MeshODENet in percent);
-- ``figures/``: RMSE vs step, rollout snapshots and loss curves per case.
+- ``figures/``: RMSE vs step, rollout snapshots and loss curves per case, and an animated
+  rollout (GIF) per case and model.
 
 Every run executes in its own process (so its peak memory is its own); ``jobs`` of them at a
 time, each with ``threads`` torch threads. Nothing in ``RESULTS/SUITE`` is touched until every
