@@ -91,7 +91,7 @@ def test_the_suite_s_stored_test_rollout_is_reused(run, tmp_path):
     import shutil
 
     from benchmarks.commands.animate import _predict
-    from benchmarks.suite.runner import PRED_FILE
+    from benchmarks.suite.runs import PRED_FILE
     from groundtruth import store
 
     case, root, run_dir = run

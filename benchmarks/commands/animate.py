@@ -56,14 +56,15 @@ def _stored_prediction(run_dir: Path, args, true: dict):
     None."""
     import numpy as np
 
-    from benchmarks.suite.runner import PRED_FILE
+    from benchmarks.suite.runs import PRED_FILE
 
     path, ck = run_dir / PRED_FILE, run_dir / f"{args.checkpoint}.pt"
     if args.split != "test" or args.checkpoint != "best" or not path.exists():
         return None
     if ck.exists() and path.stat().st_mtime_ns < ck.stat().st_mtime_ns:
         return None  # the checkpoint changed after the rollout was stored
-    pred = dict(np.load(path))
+    with np.load(path, allow_pickle=False) as z:
+        pred = dict(z)
     if pred["pos"].shape != true["pos"].shape or str(pred["case_hash"]) != str(true["case_hash"]):
         return None
     return pred["pos"][args.index]

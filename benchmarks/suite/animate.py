@@ -15,6 +15,7 @@ import numpy as np
 
 from benchmarks.suite import figures as F
 from benchmarks.suite import metrics as M
+from benchmarks.suite.runs import load_test_rollout
 from groundtruth import store
 
 MAX_FRAMES = 60  # GIF frames; longer trajectories are subsampled evenly
@@ -154,20 +155,20 @@ def animate(arrays: dict, pred_pos: np.ndarray, index: int, path: Path, *, label
     return Path(path)
 
 
-def suite_animations(out: Path, case: str, records: list, runs_dir: Path, true: dict,
+def suite_animations(out: Path, records: list, runs_dir: Path, tests: dict,
                      index: int = 0) -> list:
-    """``out/rollout_CASE_MODEL.gif`` for every run of ``records`` (one seed), from its stored
-    test rollout (``runner.PRED_FILE``) and test trajectory ``index``; a model with several
-    variants (integrator, gradient mode) gets them in the name."""
-    from benchmarks.suite.runner import PRED_FILE
-
-    models = [r["model"] for r in records]
+    """``out/rollout_CASE_MODEL.gif`` for every run of the lowest seed of each case, from its
+    stored test rollout (``runs.PRED_FILE``) and test trajectory ``index`` of ``tests[case]``;
+    a model with several variants (integrator, gradient mode) gets them in the name."""
     paths = []
-    for i, r in enumerate(records):
-        name = r["model"] if models.count(r["model"]) == 1 else \
-            f"{r['model']}_{r['integrator']}_{r['grad_mode']}"
-        pred = np.load(Path(runs_dir) / r["run"] / PRED_FILE)["pos"]
-        paths.append(animate(true, pred, index, Path(out) / f"rollout_{case}_{name}.gif",
-                             label=F._label(r), color=F._color(r["model"], i),
-                             title=f"{case}: test trajectory {index}"))
+    for case in sorted({r["case"] for r in records}):
+        seed0 = F.first_seed([r for r in records if r["case"] == case])
+        models = [r["model"] for r in seed0]
+        for i, r in enumerate(seed0):
+            name = r["model"] if models.count(r["model"]) == 1 else \
+                f"{r['model']}_{r['integrator']}_{r['grad_mode']}"
+            pred = load_test_rollout(Path(runs_dir) / r["run"])
+            paths.append(animate(tests[case], pred, index, Path(out) / f"rollout_{case}_{name}.gif",
+                                 label=F._label(r), color=F._color(r["model"], i),
+                                 title=f"{case}: test trajectory {index}"))
     return paths

@@ -1,7 +1,7 @@
 """Figures of a suite's results (``results/SUITE/figures/``), drawn from the CSVs and the runs'
 stored test rollouts: RMSE vs step per case, snapshots of predicted vs ground-truth shapes at
 the table's steps, training / validation curves, and an animated rollout per case and model
-(``benchmarks/suite/animate.py``)."""
+(``benchmarks/suite/animate.py``, called by the runner)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from benchmarks.suite.runs import load_test_rollout
 from groundtruth import store
 
 COLORS = {"meshodenet": "tab:blue", "mgn": "tab:red", "meshodenet_imex": "tab:green"}
@@ -97,7 +98,7 @@ def snapshots(case: str, records: list, runs_dir: Path, steps, path: Path, true:
     steps = [s for s in steps if s < pos.shape[1]]
     ax0, ax1 = _plane(pos)
     names = "xyz"
-    preds = [(r, np.load(runs_dir / r["run"] / "test_rollout.npz")["pos"]) for r in records]
+    preds = [(r, load_test_rollout(runs_dir / r["run"])) for r in records]
     fig, axes = plt.subplots(len(show), len(steps), figsize=(2.0 * len(steps), 2.3 * len(show)),
                              squeeze=False)
     for row, j in enumerate(show):
@@ -151,19 +152,20 @@ def loss_curves(case: str, records: list, runs_dir: Path, path: Path) -> Path:
     return _save(fig, path)
 
 
+def first_seed(records: list) -> list:
+    """The records of the lowest seed among ``records``."""
+    return [r for r in records if r["seed"] == min(x["seed"] for x in records)]
+
+
 def suite_figures(out: Path, metrics: pd.DataFrame, records: list, runs_dir: Path,
                   steps: dict, tests: dict) -> list:
     """``tests[case]``: the case's test-split arrays (ground truth of the snapshots)."""
-    from benchmarks.suite.animate import suite_animations
-
     out = Path(out)
     paths = []
     for case in sorted(metrics["case"].unique()):
         recs = [r for r in records if r["case"] == case]
         paths.append(rmse_vs_step(metrics, case, out / f"rmse_vs_step_{case}.png"))
-        seed0 = [r for r in recs if r["seed"] == min(x["seed"] for x in recs)]
-        paths.append(snapshots(case, seed0, runs_dir, steps[case], out / f"snapshots_{case}.png",
+        paths.append(snapshots(case, first_seed(recs), runs_dir, steps[case], out / f"snapshots_{case}.png",
                                tests[case]))
         paths.append(loss_curves(case, recs, runs_dir, out / f"loss_curves_{case}.png"))
-        paths += suite_animations(out, case, seed0, runs_dir, tests[case])
     return paths

@@ -37,11 +37,11 @@ import pandas as pd
 from benchmarks.suite import metrics as M
 from benchmarks.suite import procs
 from benchmarks.suite.registry import get_case
+from benchmarks.suite.runs import PRED_FILE
 from benchmarks.suite.suites import RunSpec, Suite
 from groundtruth import store
 
 RECORD_FILE = "record.json"
-PRED_FILE = "test_rollout.npz"
 METRICS_FILE = "test_metrics.csv"
 ID_COLUMNS = ["run", "case", "model", "preset", "integrator", "grad_mode", "seed"]
 
@@ -436,10 +436,12 @@ def write_results(out: Path, records: list, runs_dir: Path, suite: Suite, *,
     md = render_markdown(table, metrics, records, suite, baseline)
     store.atomic_write(paths["markdown"], lambda f: f.write(md), mode="w")
     if figures:
+        from benchmarks.suite import animate as A
         from benchmarks.suite import figures as F
 
-        paths["figures"] = F.suite_figures(out / "figures", metrics, records, runs_dir,
-                                           steps, tests)
+        paths["figures"] = (F.suite_figures(out / "figures", metrics, records, runs_dir,
+                                            steps, tests)
+                            + A.suite_animations(out / "figures", records, runs_dir, tests))
     return paths
 
 

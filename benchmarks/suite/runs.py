@@ -22,6 +22,8 @@ from benchmarks.suite.registry import get_case
 from groundtruth import store
 
 CONFIG_FILE = "config.json"
+#: a suite run's rollout of its best checkpoint on the test split (``store.save_npz`` arrays)
+PRED_FILE = "test_rollout.npz"
 
 
 def pick_device(name: str = "auto"):
@@ -432,3 +434,10 @@ def rollout_run(run_dir, out, split="test", data_dir=None, checkpoint="best",
     arrays, metrics = rollout_arrays(run_dir, split, data_dir, checkpoint, device, data_file)
     store.save_npz(out, arrays)
     return metrics
+
+
+def load_test_rollout(run_dir) -> np.ndarray:
+    """Predicted positions ``(B, T, N, 3)`` of a suite run's stored test rollout
+    (``PRED_FILE``), loaded without unpickling."""
+    with np.load(Path(run_dir) / PRED_FILE, allow_pickle=False) as z:
+        return z["pos"]
