@@ -7,6 +7,14 @@ best model by that validation RMSE (never by the test split), and after every ep
 atomically, ``last.pt`` (everything needed to continue exactly: model, optimizer, scheduler,
 RNG states, epoch, best score, history), ``best.pt`` when the validation RMSE improved, and
 ``history.csv``. ``fit(..., resume=True)`` continues from ``last.pt``.
+
+Budget checkpoints (``TrainConfig.budgets_s``): at the end of the first epoch at which the
+training process has spent a budget's CPU seconds, ``best.pt`` (the best-so-far model on
+validation) is copied to ``budgets/best_{budget}s.pt`` and a row appended to ``budgets.csv``
+(``BUDGET_FIELDS``). Budgets count CPU time (``time.process_time``), not wall time: the
+machines are shared, so a run's wall time depends on what else runs beside it while its CPU
+time does not (much). With TensorBoard installed (the ``tensorboard`` extra), ``fit`` also
+writes event files beside ``history.csv``; set ``MESHBENCH_TENSORBOARD=0`` to switch them off.
 """
 
 from __future__ import annotations
@@ -34,6 +42,16 @@ from meshodenet.metrics import position_rmse
 
 HISTORY_FIELDS = ("epoch", "train_loss", "val_rmse", "best_val_rmse", "lr", "skipped_steps",
                   "epoch_time_s", "wall_time_s")
+#: ``budgets.csv``: one row per budget crossed (CPU seconds of training, summed over sessions;
+#: wall seconds of the epochs; the epoch that crossed it; the best validation RMSE so far, m).
+BUDGET_FIELDS = ("budget_s", "cpu_s", "wall_s", "epoch", "best_epoch", "best_val_rmse")
+BUDGETS_FILE = "budgets.csv"
+BUDGET_DIR = "budgets"
+
+
+def budget_checkpoint(run_dir, budget: int) -> Path:
+    """Where ``fit`` stores the best-so-far checkpoint of ``budget`` CPU seconds."""
+    return Path(run_dir) / BUDGET_DIR / f"best_{int(budget)}s.pt"
 
 
 @dataclass(frozen=True)
@@ -48,6 +66,9 @@ class TrainConfig:
     ``grad_clip`` (max global norm) 0 disables clipping. ``eval_batch_size`` trajectories are
     rolled out together during validation. ``max_batches`` > 0 caps the optimizer steps per
     epoch (a fresh random subset of samples each epoch); 0 uses every sample.
+    ``budgets_s`` (increasing CPU seconds) are the budget checkpoints of the module docstring;
+    ``max_cpu_s`` > 0 ends training at the end of the epoch that spends that many CPU seconds
+    (and is a budget checkpoint itself); 0 trains for ``epochs``.
     """
 
     epochs: int = 400
@@ -63,11 +84,13 @@ class TrainConfig:
     grad_clip: float = 0.0
     eval_batch_size: int = 16
     max_batches: int = 0
+    budgets_s: tuple = ()
+    max_cpu_s: int = 0
 
     def __post_init__(self):
         for name, lo in (("epochs", 1), ("batch_size", 1), ("val_every", 1),
                          ("eval_batch_size", 1), ("split_seed", 0), ("seed", 0),
-                         ("max_batches", 0)):
+                         ("max_batches", 0), ("max_cpu_s", 0)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise ValueError(f"TrainConfig.{name} must be an int >= {lo}, got {v!r}")
@@ -84,6 +107,17 @@ class TrainConfig:
             raise ValueError("TrainConfig.lr_milestones must be increasing positive epochs, "
                              f"got {self.lr_milestones!r}")
         object.__setattr__(self, "lr_milestones", ms)
+        bs = tuple(self.budgets_s) if isinstance(self.budgets_s, (tuple, list)) else None
+        if bs is None or any(isinstance(b, bool) or not isinstance(b, int) or b < 1 for b in bs) \
+                or list(bs) != sorted(set(bs)):
+            raise ValueError("TrainConfig.budgets_s must be increasing positive CPU seconds "
+                             f"(ints), got {self.budgets_s!r}")
+        object.__setattr__(self, "budgets_s", bs)
+
+    @property
+    def budget_points(self) -> tuple:
+        """Every budget checkpoint, CPU s: ``budgets_s`` and ``max_cpu_s`` when set."""
+        return tuple(sorted(set(self.budgets_s) | ({self.max_cpu_s} if self.max_cpu_s else set())))
 
 
 @dataclass
@@ -211,54 +245,160 @@ def validate(model: TrajectoryModel, data: Trajectories, cfg: TrainConfig) -> fl
 
 def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: TrainConfig,
         run_dir, *, resume: bool = False, progress: bool = True, on_epoch_end=None,
-        extra_state: dict | None = None) -> FitResult:
+        extra_state: dict | None = None, clock=time.process_time) -> FitResult:
     """Train ``model`` into ``run_dir`` (see the module docstring).
 
     ``val`` may be empty (then the best model is the one of lowest training loss; meant for
     tiny tests only). ``on_epoch_end(epoch, row)`` is called after the epoch's files are
     written. ``extra_state`` (JSON-able) is stored in every checkpoint, for the caller.
+    ``clock`` (CPU seconds of this process) measures the training budget: everything ``fit``
+    does (training, validation, checkpoints) counts, summed over resumed sessions through
+    ``last.pt``; it is a parameter so that tests can inject a fake clock.
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     opt, sched = make_optimizer(model, cfg)
     gen = torch.Generator().manual_seed(cfg.seed)
     state = {"epoch": 0, "best_val_rmse": math.inf, "best_epoch": -1, "history": [],
-             "wall_time_s": 0.0}
+             "wall_time_s": 0.0, "cpu_time_s": 0.0, "budgets": []}
     if resume:
-        state = _restore(run_dir / "last.pt", model, opt, sched, gen, list(state))
+        state = _restore(run_dir / "last.pt", model, opt, sched, gen, state)
     start = state["epoch"]
+    cpu_base, cpu0 = state["cpu_time_s"], clock()
     lead = distributed_rank()[0] == 0  # with torchrun: only rank 0 validates and writes
     progress = progress and lead
     no_val = val if lead else val.subset(torch.zeros(0, dtype=torch.long))
     bar = tqdm(total=cfg.epochs, initial=start, desc=f"train {model.name}", unit="epoch",
                disable=not progress, file=sys.stderr, dynamic_ncols=True)
+    board = open_tensorboard(run_dir, start) if lead else None
     try:
         for epoch in range(start, cfg.epochs):
+            if _cpu_spent(cfg, state, model.device):
+                break
             row, improved = _epoch(model, opt, sched, gen, train, val if lead else no_val,
                                    cfg, epoch, state, progress)
+            state["cpu_time_s"] = cpu_base + clock() - cpu0
             if not lead:
                 continue
-            ck = {"model": model.state_dict(), "optimizer": opt.state_dict(),
-                  "scheduler": sched.state_dict(), "generator": gen.get_state(),
-                  "torch_rng": torch.get_rng_state(), **state, "extra": extra_state or {},
-                  "model_info": model_info(model)}
+            state_dicts = (model, opt, sched, gen, extra_state)
             if improved:
-                save_checkpoint(run_dir / "best.pt", ck)
-            save_checkpoint(run_dir / "last.pt", ck)
+                save_checkpoint(run_dir / "best.pt", _checkpoint(*state_dicts, state))
+            write_budgets(run_dir, cfg, state)
+            save_checkpoint(run_dir / "last.pt", _checkpoint(*state_dicts, state))
             write_history(run_dir / "history.csv", state["history"])
+            if board is not None:
+                log_tensorboard(board, row, state)
             bar.update(1)
-            bar.set_postfix_str(f"loss {row['train_loss']:.4g} val {row['val_rmse']:.4g} m",
-                                refresh=True)
+            bar.set_postfix_str(progress_text(row, state, cfg), refresh=True)
             if on_epoch_end is not None:
                 on_epoch_end(epoch + 1, row)
     finally:
         bar.close()
+        if board is not None:
+            board.close()
     return FitResult(state["best_epoch"], state["best_val_rmse"], state["epoch"] - start,
                      state["wall_time_s"], state["history"])
 
 
-def _restore(path: Path, model, opt, sched, gen, keys) -> dict:
-    """Load ``last.pt`` into the model, optimizer, scheduler and RNGs; return the run state."""
+def _checkpoint(model, opt, sched, gen, extra_state, state) -> dict:
+    return {"model": model.state_dict(), "optimizer": opt.state_dict(),
+            "scheduler": sched.state_dict(), "generator": gen.get_state(),
+            "torch_rng": torch.get_rng_state(), **state, "extra": extra_state or {},
+            "model_info": model_info(model)}
+
+
+def _cpu_spent(cfg: TrainConfig, state: dict, device) -> bool:
+    """Whether ``cfg.max_cpu_s`` is spent; under torchrun rank 0's answer, so that every rank
+    stops at the same epoch."""
+    if not cfg.max_cpu_s:
+        return False
+    stop = state["cpu_time_s"] >= cfg.max_cpu_s
+    if distributed_rank()[1] > 1:
+        flag = torch.tensor([float(stop)], device=device)
+        torch.distributed.broadcast(flag, 0)
+        stop = bool(flag.item())
+    return stop
+
+
+def write_budgets(run_dir: Path, cfg: TrainConfig, state: dict) -> list:
+    """For every budget of ``cfg.budget_points`` that ``state["cpu_time_s"]`` has reached and
+    ``state["budgets"]`` does not hold yet: copy ``best.pt`` (when there is one) to
+    ``budget_checkpoint``, append the budget's row to ``state["budgets"]`` and rewrite
+    ``budgets.csv``. Returns the budgets written."""
+    done = {r["budget_s"] for r in state["budgets"]}
+    due = [b for b in cfg.budget_points if b not in done and state["cpu_time_s"] >= b]
+    if not due:
+        return []
+    best = run_dir / "best.pt"
+    data = best.read_bytes() if best.exists() else None  # already in the safe format
+    for b in due:
+        if data is not None:
+            _atomic_bytes(budget_checkpoint(run_dir, b), data)
+        state["budgets"].append({"budget_s": b, "cpu_s": state["cpu_time_s"],
+                                 "wall_s": state["wall_time_s"], "epoch": state["epoch"],
+                                 "best_epoch": state["best_epoch"],
+                                 "best_val_rmse": state["best_val_rmse"]})
+    write_rows(run_dir / BUDGETS_FILE, state["budgets"], BUDGET_FIELDS)
+    return due
+
+
+def open_tensorboard(run_dir: Path, start: int):
+    """A ``SummaryWriter`` on ``run_dir`` (events after epoch ``start`` of an earlier session
+    are dropped, so a resumed run shows one curve), or None when TensorBoard cannot be
+    imported or ``MESHBENCH_TENSORBOARD=0``."""
+    if os.environ.get("MESHBENCH_TENSORBOARD", "1") == "0":
+        return None
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except Exception:  # noqa: BLE001 - an optional extra that fails to import is absent
+        return None
+    return SummaryWriter(log_dir=str(run_dir), purge_step=start or None)
+
+
+def log_tensorboard(board, row: dict, state: dict) -> None:
+    """One epoch's scalars, by epoch: training loss, validation RMSE (m; when validated),
+    best validation RMSE, learning rate, seconds per epoch and CPU seconds so far."""
+    e = row["epoch"]
+    values = {"train/loss": row["train_loss"], "val/rmse_m": row["val_rmse"],
+              "val/best_rmse_m": row["best_val_rmse"], "train/lr": row["lr"],
+              "time/epoch_s": row["epoch_time_s"], "time/cpu_s": state["cpu_time_s"]}
+    for tag, v in values.items():
+        if math.isfinite(v):
+            board.add_scalar(tag, v, e)
+    board.flush()  # live: TensorBoard reads the file while training runs
+
+
+def time_left(cfg: TrainConfig, state: dict) -> float:
+    """Estimated wall seconds left: the remaining epochs (or, when ``max_cpu_s`` is closer,
+    the epochs the remaining CPU budget buys at the mean CPU time per epoch) times the mean
+    wall time per epoch; NaN before the first epoch."""
+    n = state["epoch"]
+    if n == 0 or state["wall_time_s"] <= 0:
+        return math.nan
+    left = cfg.epochs - n
+    if cfg.max_cpu_s and state["cpu_time_s"] > 0:
+        per_epoch = state["cpu_time_s"] / n
+        left = min(left, math.ceil(max(cfg.max_cpu_s - state["cpu_time_s"], 0) / per_epoch))
+    return left * state["wall_time_s"] / n
+
+
+def _duration(s: float) -> str:
+    if not math.isfinite(s):
+        return "?"
+    s = int(round(s))
+    return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
+
+
+def progress_text(row: dict, state: dict, cfg: TrainConfig) -> str:
+    """The progress bar's postfix: epoch, loss, validation and best validation RMSE, time
+    left."""
+    return (f"epoch {row['epoch']} loss {row['train_loss']:.4g} val {row['val_rmse']:.4g} m "
+            f"best {state['best_val_rmse']:.4g} m left {_duration(time_left(cfg, state))}")
+
+
+def _restore(path: Path, model, opt, sched, gen, defaults: dict) -> dict:
+    """Load ``last.pt`` into the model, optimizer, scheduler and RNGs; return the run state
+    (``defaults`` for what an older checkpoint lacks: CPU time and budgets)."""
     ck = load_checkpoint(path, model.device)
     try:
         model.load_state_dict(ck["model"])
@@ -270,7 +410,7 @@ def _restore(path: Path, model, opt, sched, gen, keys) -> dict:
         msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise CheckpointError(f"{path}: does not fit this run's model or optimizer "
                               f"({msg[:120]})") from None
-    return {k: ck[k] for k in keys}
+    return {k: ck[k] if k in ck else v for k, v in defaults.items()}
 
 
 def _epoch(model, opt, sched, gen, train, val, cfg: TrainConfig, epoch: int, state: dict,
@@ -469,12 +609,16 @@ def convert_checkpoint(path: Path) -> bool:
 
 
 def write_history(path: Path, rows: list) -> None:
+    write_rows(path, rows, HISTORY_FIELDS)
+
+
+def write_rows(path: Path, rows: list, fields: tuple) -> None:
+    """A CSV of ``rows`` (dicts) with columns ``fields``, floats as ``%.6g``, atomically."""
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=HISTORY_FIELDS, lineterminator="\n")
+    w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
     w.writeheader()
     for r in rows:
-        w.writerow({k: (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k])
-                    for k in HISTORY_FIELDS})
+        w.writerow({k: (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k]) for k in fields})
     _atomic_bytes(Path(path), buf.getvalue().encode())
 
 
