@@ -14,7 +14,8 @@ import threading
 from pathlib import Path
 
 COMMANDS = ["generate", "simulate", "export", "crosscheck", "plate_fidelity", "compare", "train",
-            "rollout", "animate", "bench", "run", "tolerance", "convert_checkpoint"]
+            "rollout", "animate", "bench", "run", "tolerance", "convert_checkpoint",
+            "curves"]
 
 
 def build_parser() -> argparse.ArgumentParser:

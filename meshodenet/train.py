@@ -46,6 +46,9 @@ HISTORY_FIELDS = ("epoch", "train_loss", "val_rmse", "best_val_rmse", "lr", "ski
 #: wall seconds of the epochs; the epoch that crossed it; the best validation RMSE so far, m).
 BUDGET_FIELDS = ("budget_s", "cpu_s", "wall_s", "epoch", "best_epoch", "best_val_rmse")
 BUDGETS_FILE = "budgets.csv"
+#: The training budget's clock (CPU seconds of this process, every thread); a module
+#: attribute so that a test can replace it for a run started through the suite.
+CPU_CLOCK = time.process_time
 BUDGET_DIR = "budgets"
 
 
@@ -245,15 +248,15 @@ def validate(model: TrajectoryModel, data: Trajectories, cfg: TrainConfig) -> fl
 
 def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: TrainConfig,
         run_dir, *, resume: bool = False, progress: bool = True, on_epoch_end=None,
-        extra_state: dict | None = None, clock=time.process_time) -> FitResult:
+        extra_state: dict | None = None, clock=None) -> FitResult:
     """Train ``model`` into ``run_dir`` (see the module docstring).
 
     ``val`` may be empty (then the best model is the one of lowest training loss; meant for
     tiny tests only). ``on_epoch_end(epoch, row)`` is called after the epoch's files are
     written. ``extra_state`` (JSON-able) is stored in every checkpoint, for the caller.
-    ``clock`` (CPU seconds of this process) measures the training budget: everything ``fit``
-    does (training, validation, checkpoints) counts, summed over resumed sessions through
-    ``last.pt``; it is a parameter so that tests can inject a fake clock.
+    ``clock()`` (default ``CPU_CLOCK``: CPU seconds of this process) measures the training
+    budget: everything ``fit`` does (training, validation, checkpoints) counts, summed over
+    resumed sessions through ``last.pt``; tests inject a fake clock here or in ``CPU_CLOCK``.
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -264,6 +267,7 @@ def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: Tra
     if resume:
         state = _restore(run_dir / "last.pt", model, opt, sched, gen, state)
     start = state["epoch"]
+    clock = clock or CPU_CLOCK
     cpu_base, cpu0 = state["cpu_time_s"], clock()
     lead = distributed_rank()[0] == 0  # with torchrun: only rank 0 validates and writes
     progress = progress and lead

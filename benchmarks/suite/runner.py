@@ -65,6 +65,15 @@ CSV_HEADERS = {
         "over the n_seeds seeds of ln(`column`) at the row's step, seed_mean their mean (m); "
         "sigma_pooled = root mean square of sigma_log over the steps of the run key. See "
         "docs/SUITE.md."),
+    "curves": (
+        "curves.csv: learning curves (meshbench curves): the position error of every budget "
+        "checkpoint (the best-so-far model on validation once the run had spent budget_s CPU "
+        "seconds; cpu_s: the CPU time spent when it was taken) on the run's validation split "
+        "(split=val) and the test split (split=test).",
+        "rmse (m): mean over the split's trajectories of the per-trajectory RMSE at saved frame "
+        "`step` (the case's table steps), or over frames 1..T-1 (the whole rollout) for step = "
+        "-1. curves_checkpoints.json holds the SHA-256 of each checkpoint evaluated (a rerun "
+        "evaluates only new or changed ones). See docs/SUITE.md, \"Learning curves\"."),
     "runs": (
         "runs.csv: one row per training run (train_wall_time_s sums every session of the run; "
         "peak_rss_mb is the peak resident memory of the run's own process (VmHWM); "

@@ -146,3 +146,22 @@ register_suite(Suite(
     + (RunSpec("rod_falling", "meshodenet", "quick", integrator="rk4", grad_mode="adjoint"),
        RunSpec("rod_falling", "meshodenet", "quick", integrator="rk4",
                grad_mode="checkpoint"))))
+
+
+#: The learning-curve runs' overrides of the ``quick`` preset (docs/SUITE.md, "Learning
+#: curves"): budget checkpoints at about 2, 5, 15, 45 and 120 min of one core and the end at
+#: 3 h (``max_cpu_s``), epochs beyond reach so that the CPU budget ends training. The learning
+#: rate keeps the quick preset's fixed-epoch milestones: a schedule that does not depend on the
+#: final budget, under which each curve run's first epochs are its quick run's.
+CURVE_BUDGETS_S = (120, 300, 900, 2700, 7200)
+CURVE_MAX_CPU_S = 10800
+CURVE_OVERRIDES = ("train.epochs=1000000",
+                   "train.budgets_s=" + ",".join(str(b) for b in CURVE_BUDGETS_S),
+                   f"train.max_cpu_s={CURVE_MAX_CPU_S}")
+
+register_suite(Suite(
+    "curves", "learning curves: every (case, model) of quick, seed 0, trained to 3 h of one "
+    "core with best-so-far checkpoints at 2, 5, 15, 45, 120 and 180 min of CPU time (days of "
+    "one core in all; `meshbench curves` evaluates them)",
+    tuple(replace(s, overrides=CURVE_OVERRIDES, tag="curves")
+          for s in _three("rod_falling", "quick") + _three("plate_cantilever", "quick"))))

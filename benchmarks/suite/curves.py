@@ -1,0 +1,291 @@
+"""Learning curves: position RMSE of a suite's budget checkpoints against training CPU time.
+
+Training with ``TrainConfig.budgets_s`` leaves in each run directory ``budgets.csv`` and
+``budgets/best_{budget}s.pt``, the best-so-far model on validation once the run had spent that
+many CPU seconds (``meshodenet.train``). ``build_curves`` rolls every such checkpoint of a
+suite's runs out on the run's validation split and on the test split and writes, under
+``RESULTS/SUITE/``:
+
+- ``curves.csv``: one row per (run, budget, split, step): ``run, case, model, seed, budget_s,
+  cpu_s, split, step, rmse``. ``cpu_s`` is the CPU time the run had spent when the checkpoint
+  was taken (at the end of the epoch that crossed ``budget_s``); ``split`` is ``val`` or
+  ``test``; ``rmse`` (m) is the mean over the split's trajectories of the per-trajectory RMSE
+  (``benchmarks.suite.metrics``) at saved frame ``step`` (the case's table steps), or over the
+  whole rollout (frames 1..T-1) for ``step = -1`` (``ALL_STEPS``, an int so the column stays
+  integer);
+- ``curves_checkpoints.json``: the SHA-256 of every checkpoint evaluated, so that a second
+  call recomputes only the checkpoints that are new or changed;
+- ``figures/curves_{case}.png``: RMSE at the last table step and over whole rollouts (test
+  split) against training CPU time, log-log, one line per model (and seed), with the
+  no-motion level and the paper's MeshODENet number.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from benchmarks.suite import metrics as M
+from benchmarks.suite.registry import get_case
+from benchmarks.suite.suites import Suite
+from groundtruth import store
+
+COLUMNS = ("run", "case", "model", "seed", "budget_s", "cpu_s", "split", "step", "rmse")
+ALL_STEPS = -1
+CURVES_FILE = "curves.csv"
+INDEX_FILE = "curves_checkpoints.json"
+SPLITS = ("val", "test")
+#: The paper's MeshODENet RMSE at its last table step, m (Tables 1 and 2; docs/RESULTS.md).
+PAPER_MESHODENET = {"rod_falling": (180, 2.03e-4), "plate_cantilever": (350, 2.72e-4)}
+
+
+def _log(msg: str) -> None:
+    print(f"[meshbench curves] {msg}", file=sys.stderr, flush=True)
+
+
+def read_budgets(run_dir: Path) -> pd.DataFrame | None:
+    """A run's ``budgets.csv`` (None when the run has none yet); ``ValueError`` naming the
+    file when it lacks a column."""
+    from meshodenet.train import BUDGET_FIELDS, BUDGETS_FILE
+
+    path = run_dir / BUDGETS_FILE
+    if not path.exists():
+        return None
+    df = pd.read_csv(path)
+    missing = [c for c in BUDGET_FIELDS if c not in df]
+    if missing:
+        raise ValueError(f"{path}: not a budgets file (missing columns {missing}); delete it "
+                         "and resume the run to rewrite it")
+    return df
+
+
+def read_config(run_dir: Path) -> dict:
+    from benchmarks.suite.runs import CONFIG_FILE
+
+    path = run_dir / CONFIG_FILE
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: unreadable ({e}); rerun `meshbench run` for this run") from None
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+class SplitCache:
+    """Each case's train and test arrays, loaded once; ``data(config, split)`` the run's
+    ``val`` trajectories (its ``split.val_idx`` of the train file) or the ``test`` ones."""
+
+    def __init__(self, data_dir=None):
+        self.data_dir, self.arrays = data_dir, {}
+
+    def load(self, case_id: str, split: str) -> dict:
+        key = (case_id, "train" if split == "val" else split)
+        if key not in self.arrays:
+            self.arrays[key] = store.load_split(get_case(case_id), key[1], self.data_dir)
+        return self.arrays[key]
+
+    def data(self, config: dict, split: str, model):
+        """The split's trajectories on the model's device, after checking its mesh."""
+        import torch
+
+        from meshodenet.data import Mesh, Trajectories
+
+        arrays = self.load(config["case"], split)
+        name = f"{config['case']}/{'train' if split == 'val' else split}.npz"
+        model.check_mesh(Mesh.from_arrays(arrays, name), name)
+        data = Trajectories.from_arrays(arrays, device=model.device, name=name)
+        if split == "val":
+            data = data.subset(torch.as_tensor(config["split"]["val_idx"], dtype=torch.long))
+        return data
+
+
+def load_budget_model(path: Path, device="cpu"):
+    """The model of a budget checkpoint; errors name the file."""
+    from meshodenet.registry import load_model
+    from meshodenet.train import CheckpointError, UnsafeCheckpointError
+
+    try:
+        return load_model(path, device)[0]
+    except (UnsafeCheckpointError, CheckpointError):
+        raise
+    except (RuntimeError, KeyError, TypeError, ValueError) as e:
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{path}: not a checkpoint of a registered model "
+                              f"({msg[:120]})") from None
+
+
+def split_rmse(model, data, case_id: str) -> dict:
+    """``{step: rmse}`` (m) of the model's rollouts of ``data``: the mean over trajectories of
+    the RMSE at each table step, and over whole rollouts at ``ALL_STEPS``."""
+    pos, _ = model.rollout_all(data, 16)
+    pred = pos.detach().double().cpu().numpy()
+    true = data.pos.detach().double().cpu().numpy()
+    return rmse_summary(pred, true, case_id)
+
+
+def rmse_summary(pred: np.ndarray, true: np.ndarray, case_id: str) -> dict:
+    """``(B, T, N, 3)`` twice -> ``{step: mean over trajectories of the RMSE}`` at the case's
+    table steps and ``ALL_STEPS`` (whole rollouts), m."""
+    per_step = M.rmse_per_step(pred, true)
+    T = per_step.shape[1]
+    out = {int(s): float(per_step[:, s].mean()) for s in M.table_steps(case_id, T) if s < T}
+    out[ALL_STEPS] = float(M.full_rollout_rmse(pred, true).mean())
+    return out
+
+
+def checkpoint_rows(path: Path, config: dict, ids: dict, cpu_s: float, cache: SplitCache,
+                    device="cpu") -> pd.DataFrame:
+    """The curve rows of one budget checkpoint: both splits, every step."""
+    model = load_budget_model(path, device)
+    rows = []
+    for split in SPLITS:
+        data = cache.data(config, split, model)
+        if not len(data):  # a run trained without a validation split
+            continue
+        for step, rmse in split_rmse(model, data, config["case"]).items():
+            rows.append({**ids, "cpu_s": cpu_s, "split": split, "step": step, "rmse": rmse})
+    return pd.DataFrame(rows, columns=COLUMNS)
+
+
+def sort_curves(df: pd.DataFrame) -> pd.DataFrame:
+    """Rows in a fixed order: case, model, seed, run, budget, split, step (whole rollouts,
+    step -1, first)."""
+    return df.sort_values(["case", "model", "seed", "run", "budget_s", "split", "step"],
+                          kind="stable").reset_index(drop=True)[list(COLUMNS)]
+
+
+def write_curves(path: Path, df: pd.DataFrame) -> None:
+    """``curves.csv``, sorted, floats ``%.6g``, atomically; and the directory's README.md."""
+    from benchmarks.suite.runner import write_readme
+
+    text = sort_curves(df).to_csv(index=False, float_format="%.6g", lineterminator="\n")
+    store.atomic_write(Path(path), lambda f: f.write(text), mode="w")
+    write_readme(Path(path).parent)
+
+
+def read_curves(out: Path) -> tuple[pd.DataFrame, dict]:
+    """What an earlier call wrote: the rows of ``curves.csv`` and the checkpoint index."""
+    path, index_path = out / CURVES_FILE, out / INDEX_FILE
+    df = pd.read_csv(path) if path.exists() else pd.DataFrame(columns=COLUMNS)
+    missing = [c for c in COLUMNS if c not in df]
+    if missing:
+        raise ValueError(f"{path}: not a curves file (missing columns {missing}); delete it "
+                         "to rebuild it")
+    try:
+        index = json.loads(index_path.read_text()) if index_path.exists() else {}
+    except (OSError, json.JSONDecodeError):
+        index = {}  # then every checkpoint is evaluated again
+    return df, index if isinstance(index, dict) else {}
+
+
+def _ids(spec, budget: int) -> dict:
+    return {"run": spec.run_id, "case": spec.case, "model": spec.model, "seed": spec.seed,
+            "budget_s": int(budget)}
+
+
+def _todo(suite: Suite, runs_dir: Path, seeds, only) -> list:
+    """``(spec, run_dir, config, budgets row, checkpoint path)`` of every budget checkpoint of
+    the suite's runs present on disk."""
+    from meshodenet.train import budget_checkpoint
+
+    todo = []
+    for spec in suite.runs(seeds, only):
+        run_dir = runs_dir / spec.run_id
+        budgets = read_budgets(run_dir) if run_dir.is_dir() else None
+        if budgets is None:
+            _log(f"{spec.run_id}: no budget checkpoints yet (no {run_dir}/budgets.csv)")
+            continue
+        config = read_config(run_dir)
+        for row in budgets.itertuples(index=False):
+            path = budget_checkpoint(run_dir, row.budget_s)
+            if path.exists():
+                todo.append((spec, config, row, path))
+    return todo
+
+
+def build_curves(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=None,
+                 seeds: int | None = None, only: str | None = None, device="cpu",
+                 figures: bool = True) -> dict:
+    """Evaluate every budget checkpoint of ``suite``'s runs not evaluated yet (or changed
+    since), write ``curves.csv`` after each one and the figures at the end; returns the paths
+    and the counts ``computed`` / ``kept``."""
+    runs_dir, out = Path(runs_dir), Path(results_dir) / suite.name
+    todo = _todo(suite, runs_dir, seeds, only)
+    if not todo:
+        raise ValueError(f"no budget checkpoints under {runs_dir} for suite {suite.name!r}; "
+                         f"train its runs first (meshbench run --suite {suite.name})")
+    df, index = read_curves(out)
+    cache, computed = SplitCache(data_dir), 0
+    for k, (spec, config, row, path) in enumerate(todo, 1):
+        key, sha = str(int(row.budget_s)), file_sha256(path)
+        have = (df["run"] == spec.run_id) & (df["budget_s"] == int(row.budget_s))
+        if index.get(spec.run_id, {}).get(key) == sha and have.any():
+            continue
+        rows = checkpoint_rows(path, config, _ids(spec, row.budget_s), float(row.cpu_s),
+                               cache, device)
+        df = rows if df.empty else pd.concat([df[~have], rows], ignore_index=True)
+        write_curves(out / CURVES_FILE, df)
+        index.setdefault(spec.run_id, {})[key] = sha
+        store.save_json(out / INDEX_FILE, index)
+        computed += 1
+        test_all = rows[(rows["split"] == "test") & (rows["step"] == ALL_STEPS)]["rmse"].iloc[0]
+        _log(f"[{k}/{len(todo)}] {spec.run_id}: budget {key} s (CPU {row.cpu_s:.0f} s, epoch "
+             f"{row.epoch}): test RMSE over rollouts {test_all:.4g} m")
+    _log(f"{computed} checkpoint(s) evaluated, {len(todo) - computed} unchanged and kept")
+    paths = {"curves": out / CURVES_FILE}
+    if figures:
+        paths["figures"] = curve_figures(out / "figures", df, cache)
+    return {**paths, "computed": computed, "kept": len(todo) - computed}
+
+
+def no_motion_levels(case_id: str, cache: SplitCache) -> dict:
+    """The no-motion prediction's ``rmse_summary`` on the test split (``{step: rmse}``, m)."""
+    true = np.asarray(cache.load(case_id, "test")["pos"], float)
+    return rmse_summary(M.no_motion(true), true, case_id)
+
+
+def curve_figures(out: Path, df: pd.DataFrame, cache: SplitCache) -> list:
+    return [curve_figure(df[df["case"] == case], case, no_motion_levels(case, cache),
+                         out / f"curves_{case}.png")
+            for case in sorted(df["case"].unique())]
+
+
+def curve_figure(df: pd.DataFrame, case: str, no_motion: dict, path: Path) -> Path:
+    """Two log-log panels of the test split against training CPU time: RMSE at the last table
+    step and over whole rollouts; one line per model (and seed), the no-motion level dashed,
+    the paper's MeshODENet number (where it exists) dotted."""
+    from benchmarks.suite.figures import _color, _plt, _save
+
+    plt = _plt()
+    test = df[df["split"] == "test"]
+    last = max(s for s in no_motion if s != ALL_STEPS)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharex=True)
+    seeds = test["seed"].nunique() > 1
+    for ax, step, title in ((axes[0], last, f"RMSE at step {last}"),
+                            (axes[1], ALL_STEPS, "RMSE over whole rollouts")):
+        for i, ((model, seed), d) in enumerate(test[test["step"] == step]
+                                               .groupby(["model", "seed"], sort=True)):
+            d = d.sort_values("cpu_s")
+            ax.plot(d["cpu_s"], d["rmse"], "o-", color=_color(model, i),
+                    label=f"{model} s{seed}" if seeds else model)
+        ax.axhline(no_motion[step], color="0.5", ls="--", label="no motion")
+        paper = PAPER_MESHODENET.get(case)
+        if paper and step == paper[0]:
+            ax.axhline(paper[1], color="tab:blue", ls=":", label="paper MeshODENet (GPU)")
+        ax.set(xscale="log", yscale="log", xlabel="training CPU time (s)", ylabel="RMSE (m)",
+               title=title)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"{case}: test error against training time")
+    return _save(fig, path)
