@@ -270,7 +270,7 @@ def curve_figure(df: pd.DataFrame, case: str, no_motion: dict, path: Path) -> Pa
     plt = _plt()
     test = df[df["split"] == "test"]
     last = max(s for s in no_motion if s != ALL_STEPS)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharex=True)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharex=True, layout="constrained")
     seeds = test["seed"].nunique() > 1
     for ax, step, title in ((axes[0], last, f"RMSE at step {last}"),
                             (axes[1], ALL_STEPS, "RMSE over whole rollouts")):
@@ -286,6 +286,6 @@ def curve_figure(df: pd.DataFrame, case: str, no_motion: dict, path: Path) -> Pa
         ax.set(xscale="log", yscale="log", xlabel="training CPU time (s)", ylabel="RMSE (m)",
                title=title)
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=8)
+    axes[0].legend(fontsize=8, loc="best")
     fig.suptitle(f"{case}: test error against training time")
     return _save(fig, path)
