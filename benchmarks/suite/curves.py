@@ -103,6 +103,10 @@ class SplitCache:
 
         arrays = self.load(config["case"], split)
         name = f"{config['case']}/{'train' if split == 'val' else split}.npz"
+        if str(arrays["case_hash"]) != config.get("case_hash"):
+            raise ValueError(f"{name}: generated for another version of case {config['case']!r} "
+                             "than the run was trained on (case_hash differs); rerun "
+                             "`meshbench run` to retrain it")
         model.check_mesh(Mesh.from_arrays(arrays, name), name)
         data = Trajectories.from_arrays(arrays, device=model.device, name=name)
         if split == "val":
@@ -195,8 +199,8 @@ def _ids(spec, budget: int) -> dict:
 
 
 def _todo(suite: Suite, runs_dir: Path, seeds, only) -> list:
-    """``(spec, run_dir, config, budgets row, checkpoint path)`` of every budget checkpoint of
-    the suite's runs present on disk."""
+    """``(spec, config, budgets row, checkpoint path)`` of every budget checkpoint of the
+    suite's runs present on disk."""
     from meshodenet.train import budget_checkpoint
 
     todo = []

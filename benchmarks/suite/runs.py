@@ -149,8 +149,10 @@ def resolve_run(case_id: str, model_id: str, preset: str, *, data_dir=None, over
 
 
 #: Differences from the stored configuration that ``meshbench train --resume`` continues
-#: through: more epochs, and the overrides that set them.
-RESUME_IGNORES = ("train.epochs:", "overrides:")
+#: through: more epochs, another CPU budget or other budget checkpoints (they decide when
+#: training stops and which best-so-far copies it keeps, not what it computes), and the
+#: overrides that set them.
+RESUME_IGNORES = ("train.epochs:", "train.max_cpu_s:", "train.budgets_s:", "overrides:")
 
 
 @dataclasses.dataclass(frozen=True)
