@@ -6,7 +6,8 @@ split and writes RESULTS/S/{runs,metrics,rmse_at_step}.csv, rmse_at_step.md and 
 With --compare-with DIR, then compares RESULTS/S/rmse_at_step.csv against DIR/S/ (exit 1 on
 a regression) with the per-row tolerances of DIR/S/tolerance.csv (``meshbench tolerance``);
 only the rows this run produced are compared (e.g. seed 0 of a three-seed baseline).
-Suites: smoke, quick, paper, hanging, integrators, and those plugins register (see --list)."""
+Suites: smoke, quick, paper, hanging, integrators, curves, and those plugins register (see
+--list)."""
 
 from __future__ import annotations
 
