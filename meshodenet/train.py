@@ -272,7 +272,9 @@ def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: Tra
     lead = distributed_rank()[0] == 0  # with torchrun: only rank 0 validates and writes
     progress = progress and lead
     no_val = val if lead else val.subset(torch.zeros(0, dtype=torch.long))
-    bar = tqdm(total=cfg.epochs, initial=start, desc=f"train {model.name}", unit="epoch",
+    # with a CPU budget the epoch count is only a cap: no bar total, the postfix tells the time
+    bar = tqdm(total=None if cfg.max_cpu_s else cfg.epochs, initial=start,
+               desc=f"train {model.name}", unit="epoch",
                disable=not progress, file=sys.stderr, dynamic_ncols=True)
     board = open_tensorboard(run_dir, start) if lead else None
     try:

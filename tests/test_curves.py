@@ -136,6 +136,22 @@ def test_budgets_and_tensorboard_leave_training_unchanged(tmp_path, monkeypatch)
     assert len(_budget_rows(tmp_path / "budgets")) == 2
 
 
+def test_a_short_run_is_the_start_of_a_long_one(tmp_path, monkeypatch):
+    """Epochs and budgets only extend a run: the best-so-far checkpoint of a long run at the
+    end of epoch 2 is the best model of the same run trained for 2 epochs (why the quick runs
+    are the short end of the curves)."""
+    monkeypatch.setenv("MESHBENCH_TENSORBOARD", "0")
+    model, train, valid, cfg = _setup(epochs=2)
+    fit(model, train, valid, cfg, tmp_path / "short", progress=False)
+    model, train, valid, cfg = _setup(epochs=1000, budgets_s=(2,), max_cpu_s=4)
+    fit(model, train, valid, cfg, tmp_path / "long", progress=False, clock=FakeClock())
+    short = load_checkpoint(tmp_path / "short" / "best.pt")
+    at_2 = load_checkpoint(budget_checkpoint(tmp_path / "long", 2))
+    assert short["epoch"] == at_2["epoch"]
+    assert all(torch.equal(short["model"][k], at_2["model"][k]) for k in short["model"])
+    assert load_checkpoint(tmp_path / "long" / "last.pt")["epoch"] == 4
+
+
 def test_old_checkpoint_without_cpu_time_resumes(tmp_path, monkeypatch):
     """A ``last.pt`` written before budgets existed resumes with no CPU time spent."""
     monkeypatch.setenv("MESHBENCH_TENSORBOARD", "0")
