@@ -46,10 +46,10 @@ HISTORY_FIELDS = ("epoch", "train_loss", "val_rmse", "best_val_rmse", "lr", "ski
 #: wall seconds of the epochs; the epoch that crossed it; the best validation RMSE so far, m).
 BUDGET_FIELDS = ("budget_s", "cpu_s", "wall_s", "epoch", "best_epoch", "best_val_rmse")
 BUDGETS_FILE = "budgets.csv"
+BUDGET_DIR = "budgets"
 #: The training budget's clock (CPU seconds of this process, every thread); a module
 #: attribute so that a test can replace it for a run started through the suite.
 CPU_CLOCK = time.process_time
-BUDGET_DIR = "budgets"
 
 
 def budget_checkpoint(run_dir, budget: int) -> Path:
