@@ -43,8 +43,10 @@ from meshodenet.metrics import position_rmse
 HISTORY_FIELDS = ("epoch", "train_loss", "val_rmse", "best_val_rmse", "lr", "skipped_steps",
                   "epoch_time_s", "wall_time_s")
 #: ``budgets.csv``: one row per budget crossed (CPU seconds of training, summed over sessions;
-#: wall seconds of the epochs; the epoch that crossed it; the best validation RMSE so far, m).
-BUDGET_FIELDS = ("budget_s", "cpu_s", "wall_s", "epoch", "best_epoch", "best_val_rmse")
+#: wall seconds of the epochs; the epoch that crossed it; the best validation RMSE so far, m;
+#: the machine's 1-minute load average then, which says how shared the wall time was).
+BUDGET_FIELDS = ("budget_s", "cpu_s", "wall_s", "epoch", "best_epoch", "best_val_rmse",
+                 "load_1m")
 BUDGETS_FILE = "budgets.csv"
 BUDGET_DIR = "budgets"
 #: The training budget's clock (CPU seconds of this process, every thread); a module
@@ -343,9 +345,16 @@ def write_budgets(run_dir: Path, cfg: TrainConfig, state: dict) -> list:
         state["budgets"].append({"budget_s": b, "cpu_s": state["cpu_time_s"],
                                  "wall_s": state["wall_time_s"], "epoch": state["epoch"],
                                  "best_epoch": state["best_epoch"],
-                                 "best_val_rmse": state["best_val_rmse"]})
+                                 "best_val_rmse": state["best_val_rmse"], "load_1m": _load()})
     write_rows(run_dir / BUDGETS_FILE, state["budgets"], BUDGET_FIELDS)
     return due
+
+
+def _load() -> float:
+    try:
+        return float(os.getloadavg()[0])
+    except (OSError, AttributeError):  # not on every platform
+        return math.nan
 
 
 def open_tensorboard(run_dir: Path, start: int):

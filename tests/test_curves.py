@@ -38,7 +38,8 @@ def _setup(**changes):
 
 def _budget_rows(run_dir, wall=True):
     rows = list(csv.DictReader(open(run_dir / T.BUDGETS_FILE)))
-    return rows if wall else [{k: v for k, v in r.items() if k != "wall_s"} for r in rows]
+    return rows if wall else [{k: v for k, v in r.items() if k not in ("wall_s", "load_1m")}
+                              for r in rows]
 
 
 def _same_training(a, b):
@@ -68,6 +69,7 @@ def test_budgets_are_written_at_the_epoch_that_crosses_them(tmp_path, monkeypatc
     assert [int(r["budget_s"]) for r in rows] == [2, 3, 10]
     assert [int(r["epoch"]) for r in rows] == [2, 3, 5]
     assert [float(r["cpu_s"]) for r in rows] == [2.5, 5.0, 12.0]
+    assert all(float(r["load_1m"]) >= 0 for r in rows)
     for r in rows:
         ck = load_checkpoint(budget_checkpoint(tmp_path, int(r["budget_s"])))  # weights only
         assert ck["epoch"] == int(r["best_epoch"]) <= int(r["epoch"])
