@@ -10,7 +10,9 @@ statistics. Clamped nodes get zero velocity and acceleration.
 Evaluations and fixed-step rollouts (and their gradients) run on the fast path
 (``meshodenet.fast``, config ``engine = "fast"``); ``engine = "reference"`` runs the
 module-by-module definition (``meshodenet.reference``). Same numbers up to float round-off
-(docs/TRAINING.md).
+(docs/TRAINING.md). The implicit integrators (``meshodenet.implicit``) always run on the
+reference field: their Jacobians need forward-mode AD, which the fast path's hand-written
+backward does not provide.
 """
 
 from __future__ import annotations
@@ -253,6 +255,8 @@ class MeshODENet(TrajectoryModel):
         if self.engine == "reference":
             return reference.integrate(self, z0, t, ctx)
         scheme = INTEGRATORS[c.integrator]
+        if getattr(scheme, "implicit", False):  # forward-mode AD needs the module field
+            return reference.integrate(self, z0, t, ctx)
         if scheme.adaptive or (c.grad_mode == "adjoint" and torch.is_grad_enabled()):
             f = self.field_fn(ctx)
             return reference.integrate(self, z0, t, ctx, field=lambda model, z, ctx_: f(z))
