@@ -55,7 +55,8 @@ MAX_NEWTON = 25
 
 
 def newton_rtol(dtype) -> float:
-    """Relative tolerance of a stage's residual: 100 machine epsilons of ``dtype``."""
+    """Relative tolerance of a stage's residual (``Stage.newton``) and of the transposed
+    solves: 100 machine epsilons of ``dtype``."""
     return 100 * torch.finfo(dtype).eps
 
 
@@ -244,21 +245,30 @@ class Stage:
     @torch.no_grad()
     def newton(self, c: torch.Tensor, guess: torch.Tensor) -> torch.Tensor:
         """The converged ``Y``; ``NewtonError`` after ``MAX_NEWTON`` iterations or on a
-        non-finite residual."""
-        c, Y = c.detach(), guess.detach().clone()
+        non-finite residual.
+
+        Newton runs on the increment ``D = Y - c``, ``R = D - g f(c + D)``, so that the
+        tolerance is relative to the step's change (``|D| + g |f|``), not to the state (a
+        plate's positions are 1e4 times its motion per step). Converged: ``|R|`` below
+        ``newton_rtol``; or below ``sqrt`` of it and no longer halving (the float round-off
+        of ``f(c + D)`` is then the limit, e.g. a stiff field in float32)."""
+        c = c.detach()
+        D = guess.detach() - c
         rtol = newton_rtol(c.dtype)
+        r_prev = math.inf
         for _ in range(MAX_NEWTON + 1):
+            Y = c + D
             F = self.fz(Y)
-            R = Y - c - self.g * F
-            tol = rtol * (float(Y.abs().max()) + float(c.abs().max())
-                          + self.g * float(F.abs().max()))
+            R = D - self.g * F
+            scale = float(D.abs().max()) + self.g * float(F.abs().max())
             r = float(R.abs().max())
             if not math.isfinite(r):
                 break
-            if r <= tol:
+            if r <= rtol * scale or (r <= math.sqrt(rtol) * scale and r > 0.5 * r_prev):
                 return Y
-            Y = Y - self.system(Y, math.sqrt(rtol)).solve(R)
-        raise self.error(R, tol)
+            D = D - self.system(Y, math.sqrt(rtol)).solve(R)
+            r_prev = r
+        raise self.error(R, rtol * scale)
 
     def error(self, R: torch.Tensor, tol: float) -> NewtonError:
         k, s = self.step
