@@ -70,9 +70,11 @@ class MeshODENetConfig:
 
     - ``hidden``, ``layers``, ``mlp_hidden_layers``, ``activation``: latent width,
       message-passing layers, hidden layers per MLP, activation (paper: 128, 1, 2, ReLU).
-    - ``integrator``: a key of ``INTEGRATORS``; ``substeps``: steps per saved interval of the
-      fixed-step ones; ``rtol``/``atol``: tolerances of ``dopri5`` only (``None``: 1e-4 /
-      1e-7; set for a fixed-step scheme, an error).
+    - ``integrator``: a key of ``INTEGRATORS`` (the implicit ``backward_euler`` / ``sdirk2``
+      run on the reference field and are differentiated implicitly, whatever ``grad_mode``);
+      ``substeps``: steps per saved interval of the fixed-step ones; ``rtol``/``atol``:
+      tolerances of ``dopri5`` only (``None``: 1e-4 / 1e-7; set for a fixed-step scheme, an
+      error).
     - ``grad_mode``: ``direct``, ``checkpoint`` (segments of ``checkpoint_every`` intervals)
       or ``adjoint`` (``seminorm`` on or off).
     - ``shooting``: 0 trains on whole rollouts from the initial state (the paper); ``S > 0``
