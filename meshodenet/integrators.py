@@ -6,7 +6,9 @@ grid (``euler``, ``midpoint``, ``rk4``), each interval between saved times split
 Dormand-Prince pair ``dopri5`` (torchdiffeq) controlled by ``rtol``/``atol``. ``rk4`` is the
 3/8-rule variant, the one torchdiffeq (and so the paper) calls ``rk4``. The adjoint mode runs
 torchdiffeq's own schemes on the same grid, so its forward solution equals that of the other
-modes to rounding.
+modes to rounding. The implicit schemes ``backward_euler`` and ``sdirk2``
+(``meshodenet.implicit``) solve every step by Newton's method and always differentiate it
+implicitly (one transposed linear solve per stage), whatever the gradient mode.
 
 ``GRADIENT_MODES``:
 
@@ -28,6 +30,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+
+from meshodenet.implicit import IMPLICIT
 
 
 @dataclass(frozen=True)
@@ -131,6 +135,7 @@ INTEGRATORS = {
                       ((), (_3,), (-_3, 1.0), (1.0, -1.0, 1.0)),
                       (0.125, 0.375, 0.375, 0.125)),
     "dopri5": Adaptive("dopri5", 5),
+    **IMPLICIT,
 }
 GRADIENT_MODES = ("direct", "checkpoint", "adjoint")
 
@@ -152,10 +157,16 @@ def odesolve(f, z0: torch.Tensor, t: torch.Tensor, method: str = "rk4",
     ``f`` is called as ``f(t, z)``; for ``grad_mode="adjoint"`` or ``"checkpoint"`` it must be an
     ``nn.Module`` or ``params`` must list the tensors it differentiates (default: its
     parameters). ``rtol``/``atol`` are used by adaptive methods
-    only, ``substeps`` by fixed-step methods only.
+    only, ``substeps`` by fixed-step methods only. Implicit methods ignore ``grad_mode``:
+    their gradient is always the implicit one (``meshodenet.implicit``).
     """
     integ = get_integrator(method)
     kw = {"substeps": substeps, "rtol": rtol, "atol": atol}
+    if grad_mode not in GRADIENT_MODES:
+        raise ValueError(f"unknown gradient mode {grad_mode!r}; valid: "
+                         f"{', '.join(GRADIENT_MODES)}")
+    if getattr(integ, "implicit", False):  # gradients by implicit differentiation, any mode
+        return integ.solve(f, z0, t, substeps=substeps, params=params)
     if grad_mode == "direct" or not torch.is_grad_enabled():
         return integ.solve(f, z0, t, **kw)
     if grad_mode == "checkpoint":
@@ -174,7 +185,6 @@ def odesolve(f, z0: torch.Tensor, t: torch.Tensor, method: str = "rk4",
         return capped(lambda o: odeint_adjoint(f, z0, t, method=name, options=o,
                                                adjoint_options=dict(adj_opts, **o),
                                                adjoint_params=params, **tol), z0, t, name)
-    raise ValueError(f"unknown gradient mode {grad_mode!r}; valid: {', '.join(GRADIENT_MODES)}")
 
 
 def _solve_checkpointed(integ, f, z0, t, every: int, kw: dict, params) -> torch.Tensor:

@@ -37,6 +37,16 @@ class BoundField(nn.Module):
         self.model.nfe += 1
         return self.field(self.model, z, self.ctx)
 
+    def coupling(self):
+        """The ``MeshCoupling`` of the model's field on this batch (implicit integrators): a
+        node depends on nodes within ``layers + 1`` hops (``layers`` message-passing rounds
+        on features of the node's edges and rod hinges)."""
+        from meshodenet.implicit import MeshCoupling
+
+        topo, b = self.model.topology, self.ctx.batch
+        return MeshCoupling(topo.senders, topo.receivers, b.n_per_graph,
+                            self.model.config.layers + 1, b.n_graphs)
+
 
 def integrate(model, z0: torch.Tensor, t: torch.Tensor, ctx, field=vector_field) -> torch.Tensor:
     """``z`` at times ``t`` ``(T, 2, M, 3)`` with the model's integrator and gradient mode."""

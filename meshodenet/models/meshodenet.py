@@ -10,7 +10,9 @@ statistics. Clamped nodes get zero velocity and acceleration.
 Evaluations and fixed-step rollouts (and their gradients) run on the fast path
 (``meshodenet.fast``, config ``engine = "fast"``); ``engine = "reference"`` runs the
 module-by-module definition (``meshodenet.reference``). Same numbers up to float round-off
-(docs/TRAINING.md).
+(docs/TRAINING.md). The implicit integrators (``meshodenet.implicit``) always run on the
+reference field: their Jacobians need forward-mode AD, which the fast path's hand-written
+backward does not provide.
 """
 
 from __future__ import annotations
@@ -68,9 +70,11 @@ class MeshODENetConfig:
 
     - ``hidden``, ``layers``, ``mlp_hidden_layers``, ``activation``: latent width,
       message-passing layers, hidden layers per MLP, activation (paper: 128, 1, 2, ReLU).
-    - ``integrator``: a key of ``INTEGRATORS``; ``substeps``: steps per saved interval of the
-      fixed-step ones; ``rtol``/``atol``: tolerances of ``dopri5`` only (``None``: 1e-4 /
-      1e-7; set for a fixed-step scheme, an error).
+    - ``integrator``: a key of ``INTEGRATORS`` (the implicit ``backward_euler`` / ``sdirk2``
+      run on the reference field and are differentiated implicitly, whatever ``grad_mode``);
+      ``substeps``: steps per saved interval of the fixed-step ones; ``rtol``/``atol``:
+      tolerances of ``dopri5`` only (``None``: 1e-4 / 1e-7; set for a fixed-step scheme, an
+      error).
     - ``grad_mode``: ``direct``, ``checkpoint`` (segments of ``checkpoint_every`` intervals)
       or ``adjoint`` (``seminorm`` on or off).
     - ``shooting``: 0 trains on whole rollouts from the initial state (the paper); ``S > 0``
@@ -253,6 +257,8 @@ class MeshODENet(TrajectoryModel):
         if self.engine == "reference":
             return reference.integrate(self, z0, t, ctx)
         scheme = INTEGRATORS[c.integrator]
+        if getattr(scheme, "implicit", False):  # forward-mode AD needs the module field
+            return reference.integrate(self, z0, t, ctx)
         if scheme.adaptive or (c.grad_mode == "adjoint" and torch.is_grad_enabled()):
             f = self.field_fn(ctx)
             return reference.integrate(self, z0, t, ctx, field=lambda model, z, ctx_: f(z))
