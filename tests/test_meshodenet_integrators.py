@@ -32,9 +32,9 @@ class Linear(torch.nn.Module):
 class TestConvergence:
     """Global error at t = 2 over step sizes 2/8 ... 2/64: fitted log-log slope = order."""
 
-    expected = {"euler": 1, "midpoint": 2, "rk4": 4}
+    expected = {"euler": 1, "midpoint": 2, "rk4": 4, "backward_euler": 1, "sdirk2": 2}
 
-    @pytest.mark.parametrize("name", ["euler", "midpoint", "rk4"])
+    @pytest.mark.parametrize("name", ["euler", "midpoint", "rk4", "backward_euler", "sdirk2"])
     def test_order(self, name):
         f = Linear()
         z0 = torch.tensor([[1.0, 0.0]], dtype=torch.float64)

@@ -22,7 +22,6 @@ suite's runs out on the run's validation split and on the test split and writes,
 
 from __future__ import annotations
 
-import hashlib
 import json
 import sys
 from pathlib import Path
@@ -72,14 +71,6 @@ def read_config(run_dir: Path) -> dict:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as e:
         raise ValueError(f"{path}: unreadable ({e}); rerun `meshbench run` for this run") from None
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 class SplitCache:
@@ -232,7 +223,7 @@ def build_curves(suite: Suite, *, results_dir="results", runs_dir="runs", data_d
     df, index = read_curves(out)
     cache, computed = SplitCache(data_dir), 0
     for k, (spec, config, row, path) in enumerate(todo, 1):
-        key, sha = str(int(row.budget_s)), file_sha256(path)
+        key, sha = str(int(row.budget_s)), store.sha256_file(path)
         have = (df["run"] == spec.run_id) & (df["budget_s"] == int(row.budget_s))
         if index.get(spec.run_id, {}).get(key) == sha and have.any():
             continue
