@@ -31,6 +31,7 @@ import pandas as pd
 
 from benchmarks.suite import metrics as M
 from benchmarks.suite.registry import get_case
+from benchmarks.suite.runs import CONFIG_FILE, load_run_model
 from benchmarks.suite.suites import Suite
 from groundtruth import store
 
@@ -64,8 +65,6 @@ def read_budgets(run_dir: Path) -> pd.DataFrame | None:
 
 
 def read_config(run_dir: Path) -> dict:
-    from benchmarks.suite.runs import CONFIG_FILE
-
     path = run_dir / CONFIG_FILE
     try:
         return json.loads(path.read_text())
@@ -105,21 +104,6 @@ class SplitCache:
         return data
 
 
-def load_budget_model(path: Path, device="cpu"):
-    """The model of a budget checkpoint; errors name the file."""
-    from meshodenet.registry import load_model
-    from meshodenet.train import CheckpointError, UnsafeCheckpointError
-
-    try:
-        return load_model(path, device)[0]
-    except (UnsafeCheckpointError, CheckpointError):
-        raise
-    except (RuntimeError, KeyError, TypeError, ValueError) as e:
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise CheckpointError(f"{path}: not a checkpoint of a registered model "
-                              f"({msg[:120]})") from None
-
-
 def split_rmse(model, data, case_id: str) -> dict:
     """``{step: rmse}`` (m) of the model's rollouts of ``data``: the mean over trajectories of
     the RMSE at each table step, and over whole rollouts at ``ALL_STEPS``."""
@@ -142,7 +126,7 @@ def rmse_summary(pred: np.ndarray, true: np.ndarray, case_id: str) -> dict:
 def checkpoint_rows(path: Path, config: dict, ids: dict, cpu_s: float, cache: SplitCache,
                     device="cpu") -> pd.DataFrame:
     """The curve rows of one budget checkpoint: both splits, every step."""
-    model = load_budget_model(path, device)
+    model = load_run_model(path, device)[0]
     rows = []
     for split in SPLITS:
         data = cache.data(config, split, model)

@@ -353,9 +353,27 @@ def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_di
     return summary
 
 
-def _load_run(run_dir: Path, checkpoint: str, device: str):
+def load_run_model(path: Path, device="cpu", fix: str = ""):
+    """``meshodenet.registry.load_model(path)`` with one-line ``CheckpointError``s that name the
+    file and end with ``fix`` (what to do); an ``UnsafeCheckpointError`` passes unchanged (its
+    message says how to convert a trusted file)."""
     from meshodenet.registry import load_model
+    from meshodenet.train import CheckpointError, UnsafeCheckpointError
 
+    tail = f"; {fix}" if fix else ""
+    try:
+        return load_model(path, device)
+    except UnsafeCheckpointError:
+        raise
+    except CheckpointError as e:
+        raise CheckpointError(f"{e}{tail}") from None
+    except (RuntimeError, KeyError, TypeError, ValueError) as e:
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{path}: not a checkpoint of a registered model "
+                              f"({msg[:120]}){tail}") from None
+
+
+def _load_run(run_dir: Path, checkpoint: str, device: str):
     run_dir = Path(run_dir)
     cfg_path = run_dir / CONFIG_FILE
     if not cfg_path.exists():
@@ -368,20 +386,9 @@ def _load_run(run_dir: Path, checkpoint: str, device: str):
     except (OSError, json.JSONDecodeError) as e:
         raise ValueError(f"{cfg_path}: unreadable ({e}); retrain the run (meshbench train "
                          "--out DIR) or restore the file") from None
-    from meshodenet.train import CheckpointError, UnsafeCheckpointError
-
-    path = run_dir / f"{checkpoint}.pt"
-    try:
-        model, ck = load_model(path, pick_device(device))
-    except UnsafeCheckpointError:
-        raise
-    except CheckpointError as e:
-        raise CheckpointError(f"{e}; retrain the run (meshbench train --out {run_dir} ...) or "
-                              "restore the file") from None
-    except (RuntimeError, KeyError, TypeError, ValueError) as e:
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise CheckpointError(f"{path}: not a checkpoint of a registered model ({msg[:120]}); "
-                              f"retrain the run (meshbench train --out {run_dir} ...)") from None
+    model, ck = load_run_model(run_dir / f"{checkpoint}.pt", pick_device(device),
+                               f"retrain the run (meshbench train --out {run_dir} ...) or "
+                               "restore the file")
     return config, model, ck
 
 
