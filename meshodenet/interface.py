@@ -39,10 +39,15 @@ class TrajectoryModel(nn.Module):
         Called by the trainer before every epoch (0-based, also after resuming), for models
         whose training changes with the epoch (a curriculum); the default does nothing.
 
+    ``trainable`` (class attribute, default True) is False for a model with nothing to learn
+    (a reference solver): ``fit`` refuses it, and the suite's runner records it without
+    training (an empty checkpoint, zero epochs).
+
     Clamped nodes (``mesh.node_type == 1``) must not move in a rollout.
     """
 
     name = "base"
+    trainable = True
 
     def __init__(self, mesh: Mesh, config):
         super().__init__()

@@ -260,6 +260,8 @@ def fit(model: TrajectoryModel, train: Trajectories, val: Trajectories, cfg: Tra
     budget: everything ``fit`` does (training, validation, checkpoints) counts, summed over
     resumed sessions through ``last.pt``; tests inject a fake clock here or in ``CPU_CLOCK``.
     """
+    if not model.trainable:
+        raise ValueError(f"model {model.name!r} has nothing to train (trainable = False)")
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     opt, sched = make_optimizer(model, cfg)

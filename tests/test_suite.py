@@ -234,9 +234,8 @@ def test_every_case_and_model_smoke(case_id, model_id, tmp_path, monkeypatch):
 def test_every_registered_suite_resolves():
     """Each run of each suite names registered ids and a valid configuration (e.g. the
     integrators suite's dopri5 + direct and rk4 + adjoint), without training anything."""
-    from benchmarks.suite.runs import apply_overrides
+    from benchmarks.suite.runs import apply_overrides, get_model_spec
     from benchmarks.suite.suites import SUITES
-    from meshodenet.registry import get_model_spec
 
     assert {"smoke", "quick", "paper", "integrators"} <= set(SUITES)
     for suite in SUITES.values():

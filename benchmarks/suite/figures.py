@@ -13,7 +13,8 @@ import pandas as pd
 from benchmarks.suite.runs import load_test_rollout
 from groundtruth import store
 
-COLORS = {"meshodenet": "tab:blue", "mgn": "tab:red", "meshodenet_imex": "tab:green"}
+COLORS = {"meshodenet": "tab:blue", "mgn": "tab:red", "meshodenet_imex": "tab:green",
+          "solver_h": "tab:gray"}
 
 
 def _plt():
@@ -38,9 +39,9 @@ def _has_scheme(model: str) -> bool:
     then name them)."""
     import dataclasses
 
-    from meshodenet.registry import MODELS
+    from benchmarks.suite.runs import suite_models
 
-    spec = MODELS.get(model)
+    spec = suite_models().get(model)
     return spec is not None and {"integrator", "grad_mode"} <= {
         f.name for f in dataclasses.fields(spec.config_cls)}
 
@@ -136,6 +137,8 @@ def loss_curves(case: str, records: list, runs_dir: Path, path: Path) -> Path:
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
     for i, r in enumerate(records):
         h = pd.read_csv(runs_dir / r["run"] / "history.csv")
+        if h.empty:  # a model with nothing to learn (the solver row)
+            continue
         c = _color(r["model"], i) if len(records) <= 2 else f"C{i}"
         lbl = f"{_label(r)} s{r['seed']}"
         a.plot(h["epoch"], h["train_loss"], color=c, label=lbl)
@@ -147,7 +150,8 @@ def loss_curves(case: str, records: list, runs_dir: Path, path: Path) -> Path:
         ax.set_yscale("log")
         ax.set_xlabel("epoch")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
     fig.suptitle(case, fontsize=10)
     return _save(fig, path)
 

@@ -144,7 +144,7 @@ def check_runs(runs) -> None:
     ``grad_mode`` given to a model whose configuration has no such field."""
     import dataclasses
 
-    from meshodenet.registry import get_model_spec
+    from benchmarks.suite.runs import get_model_spec
 
     for r in runs:
         get_case(r.case)
@@ -162,7 +162,7 @@ def _integrator_ids(config: dict) -> tuple[str, str]:
     """The run's ``integrator`` / ``grad_mode`` columns: its config's, else its model class's
     ``integrator_id`` / ``grad_mode_id`` (a model with a fixed scheme), else ``NO_INTEGRATOR``
     / ``NO_GRAD_MODE``."""
-    from meshodenet.registry import get_model_spec
+    from benchmarks.suite.runs import get_model_spec
 
     mc = config["model_config"]
     cls = get_model_spec(config["model"]).model_cls
@@ -199,7 +199,13 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
 def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str) -> dict:
     import torch
 
-    from benchmarks.suite.runs import decide_run, resolve_run, rollout_arrays, train_resolved
+    from benchmarks.suite.runs import (
+        decide_run,
+        resolve_run,
+        rollout_arrays,
+        train_resolved,
+        trainable,
+    )
 
     overrides = spec.all_overrides()
     resolved = resolve_run(spec.case, spec.model, spec.preset, data_dir=data_dir,
@@ -262,6 +268,10 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
         "versions": store.library_versions(),
         "timestamp": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
+    if not trainable(spec.model):  # the solver row: no epochs, no training time
+        from benchmarks.suite.solver_row import UNTRAINED_RECORD
+
+        rec.update(UNTRAINED_RECORD)
     store.save_json(rec_path, rec)
     return rec
 
@@ -481,8 +491,7 @@ def render_markdown(table: pd.DataFrame, metrics: pd.DataFrame, records: list,
                   "| " + " | ".join(keys) + " | " + " | ".join(f"step {s}" for s in steps)
                   + " | full rollout |",
                   "|" + "---|" * (len(keys) + len(steps) + 1)]
-        for kv, dfm in dfc.groupby(keys, sort=True):
-            kv = kv if isinstance(kv, tuple) else (kv,)
+        for kv, dfm in _row_groups(dfc, keys):
             d = dfm.set_index("step")
             cells = [f"{1e3 * d.loc[s, 'rmse_mean']:.3g} ± {1e3 * d.loc[s, 'rmse_std']:.2g}"
                      for s in steps]
@@ -499,17 +508,40 @@ def render_markdown(table: pd.DataFrame, metrics: pd.DataFrame, records: list,
         lines += ["", f"Increase over MeshODENet (%), `{inc}`:", "",
                   "| " + " | ".join(keys) + " | " + " | ".join(f"step {s}" for s in steps) + " |",
                   "|" + "---|" * (len(keys) + len(steps))]
-        for kv, dfm in dfc.groupby(keys, sort=True):
-            kv = kv if isinstance(kv, tuple) else (kv,)
+        for kv, dfm in _row_groups(dfc, keys):
             d = dfm.set_index("step")
             lines.append("| " + " | ".join(str(v) for v in kv) + " | "
                          + " | ".join(_fmt(d.loc[s, inc]) for s in steps) + " |")
         lines.append("")
-    recs = [r for r in records]
-    lines += ["## Runs", "", "| run | train wall (s) | peak memory (MB) | threads | best epoch | "
-              "test RMSE (mm) | no-motion RMSE (mm) |", "|---|---|---|---|---|---|---|"]
-    for r in recs:
-        lines.append(f"| {r['run']} | {r['train_wall_time_s']:.0f} | {r['peak_rss_mb']:.0f} | "
-                     f"{r['threads']} | {r['best_epoch']} | {1e3 * r['test_rmse_m']:.3g} | "
-                     f"{1e3 * r['test_no_motion_rmse_m']:.3g} |")
+    n_test = table.groupby("case")["n_trajectories"].max()
+    lines += ["## Runs", "", "Rollout: wall time of the test rollout per test trajectory (the "
+              "learned models roll out up to 16 trajectories at once, the solver one by one).",
+              "", "| run | train wall (s) | peak memory (MB) | threads | best epoch | "
+              "rollout (s per trajectory) | test RMSE (mm) | no-motion RMSE (mm) |",
+              "|---|---|---|---|---|---|---|---|"]
+    for r in records:
+        trained = _trainable(r["model"])
+        lines.append(f"| {r['run']} | "
+                     + (f"{r['train_wall_time_s']:.0f}" if trained else "n/a (not trained)")
+                     + f" | {r['peak_rss_mb']:.0f} | {r['threads']} | "
+                     + (f"{r['best_epoch']}" if trained else "n/a")
+                     + f" | {r['rollout_wall_time_s'] / n_test.get(r['case'], 1):.3g} | "
+                     f"{1e3 * r['test_rmse_m']:.3g} | {1e3 * r['test_no_motion_rmse_m']:.3g} |")
     return "\n".join(lines) + "\n"
+
+
+def _trainable(model: str) -> bool:
+    from benchmarks.suite.runs import trainable
+
+    return trainable(model)
+
+
+def _row_groups(dfc: pd.DataFrame, keys: list) -> list:
+    """``(key values, rows)`` of ``dfc`` grouped by ``keys``, sorted, with the models that
+    learn nothing (reference rows: the solver) last, beside the no-motion row."""
+    groups = [(kv if isinstance(kv, tuple) else (kv,), d)
+              for kv, d in dfc.groupby(keys, sort=True)]
+    if "model" not in keys:
+        return groups
+    i = keys.index("model")
+    return sorted(groups, key=lambda g: not _trainable(g[0][i]))

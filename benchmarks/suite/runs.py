@@ -26,6 +26,32 @@ CONFIG_FILE = "config.json"
 PRED_FILE = "test_rollout.npz"
 
 
+def suite_models() -> dict:
+    """The torch side's ``MODELS`` with the suite's own models registered (``solver_h``,
+    ``benchmarks.suite.solver_row``). The benchmarks side looks models up here
+    (``get_model_spec``), so that every process has them, workers included, while this module
+    loads without torch."""
+    from benchmarks.suite import solver_row  # noqa: F401 - registers solver_h on import
+    from meshodenet.registry import MODELS
+
+    return MODELS
+
+
+def get_model_spec(model_id: str):
+    """``meshodenet.registry.get_model_spec`` of ``suite_models()``."""
+    suite_models()
+    from meshodenet.registry import get_model_spec as spec
+
+    return spec(model_id)
+
+
+def trainable(model_id: str) -> bool:
+    """False for a registered model with nothing to learn (``trainable = False``: the solver
+    row), which the runner records without training."""
+    spec = suite_models().get(model_id)
+    return spec is None or getattr(spec.model_cls, "trainable", True)
+
+
 def pick_device(name: str = "auto"):
     import torch
 
@@ -101,13 +127,13 @@ def with_defaults(config: dict) -> dict:
     to their defaults: a run stored before a setting existed ran with that setting's default,
     so it compares equal to today's configuration with the default (and differs from one that
     sets another value). Unknown models and non-dict configs are returned as they are."""
-    from meshodenet.registry import MODELS
     from meshodenet.train import TrainConfig
 
-    if not isinstance(config, dict) or config.get("model") not in MODELS:
+    models = suite_models()
+    if not isinstance(config, dict) or config.get("model") not in models:
         return config
     out = dict(config)
-    for key, cls in (("train", TrainConfig), ("model_config", MODELS[config["model"]].config_cls)):
+    for key, cls in (("train", TrainConfig), ("model_config", models[config["model"]].config_cls)):
         if not isinstance(config.get(key), dict) or not dataclasses.is_dataclass(cls):
             continue
         filled = dict(config[key])
@@ -124,7 +150,6 @@ def resolve_run(case_id: str, model_id: str, preset: str, *, data_dir=None, over
     training arrays, the model spec, the preset's configs after ``overrides``, the validation
     split, and ``config`` (the JSON-ready dict written to ``config.json``)."""
     from meshodenet.data import Mesh, split_indices
-    from meshodenet.registry import get_model_spec
 
     case = get_case(case_id)
     spec = get_model_spec(model_id)
@@ -316,8 +341,13 @@ def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_di
     history = out / "history.csv"
     before = history.stat().st_mtime_ns if history.exists() else None
     try:
-        result = fit(model, train, val, train_cfg, out, resume=resume, progress=progress,
-                     on_epoch_end=on_epoch_end)
+        if model.trainable:
+            result = fit(model, train, val, train_cfg, out, resume=resume, progress=progress,
+                         on_epoch_end=on_epoch_end)
+        else:  # nothing to learn (the solver row): its checkpoints only
+            from benchmarks.suite.solver_row import save_untrained
+
+            result = save_untrained(model, out)
         session["epochs_run"] = result.epochs_run
         if not lead:
             return {"run": str(out), "rank": distributed_rank()[0]}
@@ -360,6 +390,7 @@ def load_run_model(path: Path, device="cpu", fix: str = ""):
     from meshodenet.registry import load_model
     from meshodenet.train import CheckpointError, UnsafeCheckpointError
 
+    suite_models()  # the checkpoint may be of a model registered by the suite
     tail = f"; {fix}" if fix else ""
     try:
         return load_model(path, device)

@@ -125,10 +125,18 @@ def get_suite(name: str) -> Suite:
 register_suite(Suite(
     "smoke", "rod_cantilever (6 short trajectories), both models, smoke preset: about a "
     "minute, for the tests", _both("rod_cantilever", "smoke")))
+def _solver(case: str) -> tuple:
+    """The case's own solver at the sampling interval, a reference row (nothing is trained;
+    its seeds are identical: benchmarks/suite/solver_row.py)."""
+    return (RunSpec(case, "solver_h", "quick"),)
+
+
 register_suite(Suite(
-    "quick", "the paper's two cases, MeshODENet, MGN and MeshODENet-IMEX, quick preset: about "
-    "20 minutes (data and one seed) on a shared 2-core CPU with --jobs 2 (README)",
-    _three("rod_falling", "quick") + _three("plate_cantilever", "quick"),
+    "quick", "the paper's two cases, MeshODENet, MGN and MeshODENet-IMEX, quick preset, and "
+    "the case's solver at the sampling interval (solver_h, a reference row): about 20 minutes "
+    "(data and one seed) on a shared 2-core CPU with --jobs 2 (README)",
+    _three("rod_falling", "quick") + _solver("rod_falling")
+    + _three("plate_cantilever", "quick") + _solver("plate_cantilever"),
     compare_rtol=0.05))
 register_suite(Suite(
     "paper", "the paper's two cases, MeshODENet and MGN, the paper's settings (GPU "
