@@ -359,7 +359,8 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
         i = len(done)
         if kind == "ok":
             records[run_id] = rec = value
-            how = "reused" if rec.get("reused") else f"trained in {rec['train_wall_time_s']:.0f} s"
+            how = ("reused" if rec.get("reused") else f"trained in {rec['train_wall_time_s']:.0f} s"
+                   if _trainable(rec["model"]) else "recorded (nothing to train)")
             _log(f"[{i}/{len(runs)}] {run_id}: {how}; test RMSE {rec['test_rmse_m']:.4g} m "
                  f"(no motion {rec['test_no_motion_rmse_m']:.4g} m)")
             return
