@@ -168,7 +168,7 @@ CURVE_OVERRIDES = ("train.epochs=1000000",
                    f"train.max_cpu_s={CURVE_MAX_CPU_S}")
 
 register_suite(Suite(
-    "curves", "learning curves: every (case, model) of quick, seed 0, trained to 3 h of one "
+    "curves", "learning curves: every learned (case, model) of quick, seed 0, trained to 3 h of one "
     "core with best-so-far checkpoints at 2, 5, 15, 45, 120 and 180 min of CPU time (days of "
     "one core in all; `meshbench curves` evaluates them)",
     tuple(replace(s, overrides=CURVE_OVERRIDES, tag="curves")
