@@ -243,7 +243,6 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
     df = per_run_metrics(pred["pos"], true["pos"], true["t"], ids)
     text = df.to_csv(index=False, float_format="%.9g", lineterminator="\n")
     store.atomic_write(run_dir / METRICS_FILE, lambda f: f.write(text), mode="w")
-    _add_horizon(spec, run_dir, data_dir, device, true)
     peak_mb = procs.peak_rss_mb()
     tc, mc = config["train"], config["model_config"]
     rec = {
@@ -266,6 +265,8 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
         "timestamp": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
     store.save_json(rec_path, rec)
+    # after the record: should it fail, the run is finished and its reuse adds the rows
+    _add_horizon(spec, run_dir, data_dir, device, true)
     return rec
 
 
