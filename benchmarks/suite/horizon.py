@@ -240,11 +240,20 @@ def references(case, arrays: dict, data_dir=None, log=None) -> list:
     kind, get = ("static", static_equilibrium) if clamped else ("steady", steady_fall)
     youngs = [float(y) for y in np.asarray(arrays["youngs"], float)]
     todo = [y for y in youngs if not cache_path(case, kind, y, data_dir).exists()]
-    out = []
-    for y in youngs:
-        if log is not None and y in todo:
-            log(f"solver reference {todo.index(y) + 1}/{len(todo)} ({kind}, Y = {y:.4g} Pa)")
-        out.append(get(case, y, data_dir))
+    if not todo:
+        return [get(case, y, data_dir) for y in youngs]
+    from benchmarks.suite.procs import DirLock
+
+    # one process computes a case's references; another run of it (--jobs) waits, then reads
+    say = log or (lambda msg: None)
+    with DirLock(cache_path(case, kind, 0.0, data_dir).parent, ".lock").acquire(
+            wait=True, on_wait=lambda pid: say(f"process {pid or '?'} is computing the "
+                                               "solver references; waiting for it")):
+        out = []
+        for y in youngs:
+            if y in todo and not cache_path(case, kind, y, data_dir).exists():
+                say(f"solver reference {todo.index(y) + 1}/{len(todo)} ({kind}, Y = {y:.4g} Pa)")
+            out.append(get(case, y, data_dir))
     return out
 
 
