@@ -200,10 +200,14 @@ def horizon_values(case, pred: np.ndarray, arrays: dict, data_dir=None, log=None
 
 
 # --- the solver's references (cached) -------------------------------------------------------
+def cache_dir(case, data_dir=None) -> Path:
+    """``DATA/CASE/horizon``: the solver's references of a case."""
+    return store.data_dir(data_dir) / case.id / "horizon"
+
+
 def cache_path(case, kind: str, youngs: float, data_dir=None) -> Path:
     """``DATA/CASE/horizon/KIND-HASH16-Y.npz``: one file per (case hash, modulus)."""
-    return store.data_dir(data_dir) / case.id / "horizon" / \
-        f"{kind}-{case.hash()[:16]}-{float(youngs)!r}.npz"
+    return cache_dir(case, data_dir) / f"{kind}-{case.hash()[:16]}-{float(youngs)!r}.npz"
 
 
 def _read_cache(path: Path, case_hash: str, youngs: float) -> dict | None:
@@ -246,7 +250,7 @@ def references(case, arrays: dict, data_dir=None, log=None) -> list:
 
     # one process computes a case's references; another run of it (--jobs) waits, then reads
     say = log or (lambda msg: None)
-    with DirLock(cache_path(case, kind, 0.0, data_dir).parent, ".lock").acquire(
+    with DirLock(cache_dir(case, data_dir), ".lock").acquire(
             wait=True, on_wait=lambda pid: say(f"process {pid or '?'} is computing the "
                                                "solver references; waiting for it")):
         out = []
