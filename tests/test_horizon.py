@@ -211,3 +211,16 @@ def test_the_runner_adds_the_rows_to_a_finished_run_once(tmp_path, monkeypatch, 
     assert "long horizon" in capsys.readouterr().err
     runner._execute(spec, run_dir, str(tmp_path / "data"), False, "cpu")
     assert model.calls == 1 and path.read_text() == after  # present: not added again
+
+
+def test_a_reference_that_fails_keeps_the_run(tmp_path, monkeypatch, capsys):
+    from benchmarks.suite import runner
+    from benchmarks.suite.suites import RunSpec
+
+    def fail(*a, **k):
+        raise H.HorizonError("rod_tiny at Y = 1 Pa: the solver's fall is not steady")
+
+    monkeypatch.setattr(H, "add_to_run", fail)
+    runner._add_horizon(RunSpec(TINY.id, "mgn", "smoke"), tmp_path, tmp_path, "cpu")
+    err = capsys.readouterr().err
+    assert "long horizon: not computed (HorizonError: rod_tiny" in err and "retries" in err

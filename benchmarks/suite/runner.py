@@ -271,9 +271,15 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
 
 
 def _add_horizon(spec: RunSpec, run_dir: Path, data_dir, device: str, arrays=None) -> None:
-    """Append the run's long-horizon rows to its ``METRICS_FILE`` (``horizon.add_to_run``)."""
+    """Append the run's long-horizon rows to its ``METRICS_FILE`` (``horizon.add_to_run``); a
+    solver reference that cannot be computed is logged, and the run kept without the rows."""
+    from groundtruth.implicit import ConvergenceError
+
     log = lambda msg: _log(f"{spec.run_id}: long horizon: {msg}")  # noqa: E731
-    H.add_to_run(run_dir, run_dir / METRICS_FILE, data_dir, device, arrays, log)
+    try:
+        H.add_to_run(run_dir, run_dir / METRICS_FILE, data_dir, device, arrays, log)
+    except (H.HorizonError, ConvergenceError) as e:  # the run itself is fine: keep it
+        log(f"not computed ({type(e).__name__}: {e}); the next `meshbench run` retries")
 
 
 def _cpu_model() -> str:
