@@ -58,6 +58,25 @@ def test_broken_files_exit_2(metrics, tmp_path, capsys, breakage, message):
     assert message in capsys.readouterr().err
 
 
+def test_subset_reports_rows_of_a_metric_the_baseline_lacks(metrics, tmp_path, capsys):
+    df, _ = metrics
+    df = df.assign(metric="rmse_at_step")
+    base = write(df, tmp_path / "b.csv")
+    added = df[df["step"] == 1].iloc[:4].assign(metric="horizon_shape_rmse", step=900)
+    new = write(pd.concat([df, added]), tmp_path / "n.csv")
+    assert main(["compare", base, new]) == 2  # without --subset: rows in one file only
+    assert main(["compare", base, new, "--subset"]) == 0
+    assert "not compared: 4 rows of metrics the baseline has no row of" in capsys.readouterr().out
+    # a known metric's extra row is still an error, and the old rows still compared
+    extra = df.iloc[:1].assign(step=999)
+    assert main(["compare", base, write(pd.concat([df, added, extra]), tmp_path / "x.csv"),
+                 "--subset"]) == 2
+    moved = df.copy()
+    moved.loc[0, "rmse"] *= 2
+    assert main(["compare", base, write(pd.concat([moved, added]), tmp_path / "m.csv"),
+                 "--subset"]) == 1
+
+
 def test_unreadable_file_exits_2(metrics, tmp_path, capsys):
     _, base = metrics
     (tmp_path / "bad.csv").write_bytes(b"\xff\xfe\x00garbage")

@@ -43,7 +43,11 @@ def test_smoke_suite_writes_every_result(smoke):
     assert list(runs["integrator"]) == ["rk4", "autoregressive"]
 
     m = read_csv(out / "metrics.csv")
-    assert set(m["metric"]) == {"rmse_at_step", "full_rollout_rmse"}
+    assert set(m["metric"]) == {"rmse_at_step", "full_rollout_rmse", "horizon_equilibrium_rmse",
+                                "horizon_tip_rel_error"}  # the clamped rod's long horizon
+    hz = m[m["metric"].str.startswith("horizon_")]
+    assert len(hz) == 2 * 2 * 2 and (hz["step"] == 5 * 100).all()
+    assert (hz["rmse"].dropna() > 0).all() and "## Long horizon" in (out / "rmse_at_step.md").read_text()
     steps = m[m["metric"] == "rmse_at_step"]
     # 2 runs x 2 test trajectories x 101 frames, frame 0 exact up to float32
     assert len(steps) == 2 * 2 * 101

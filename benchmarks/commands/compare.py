@@ -5,7 +5,8 @@ Exit 0 when every value is within tolerance, 1 on a regression (with a table of 
 moved), 2 on a malformed file (missing columns, duplicate keys, rows present in one file only).
 ``--tolerance results/SUITE/tolerance.csv`` (from ``meshbench tolerance``) gives every row and
 column its own relative tolerance; ``--subset`` compares only the baseline's rows that NEW has
-(e.g. a one-seed re-run against a three-seed baseline)."""
+(e.g. a one-seed re-run against a three-seed baseline), and NEW's rows of a metric the
+baseline has no row of (a metric added since, e.g. ``horizon_*``) are reported, not compared."""
 
 from __future__ import annotations
 
@@ -25,7 +26,8 @@ def register(sub):
                    help="per-row relative tolerances (tolerance.csv of meshbench tolerance); "
                         "then only the columns it covers are compared")
     p.add_argument("--subset", action="store_true",
-                   help="baseline rows missing from NEW are not an error")
+                   help="baseline rows missing from NEW are not an error, nor rows of NEW "
+                        "whose metric the baseline lacks entirely")
     p.add_argument("--no-default-ignore", action="store_true",
                    help="compare provenance columns too (wall time, memory, versions, ...)")
     p.set_defaults(func=run)
@@ -49,6 +51,8 @@ def report(res, rtol: float, atol: float, tolerance=None) -> int:
 
     print(f"compared {res.n_rows} rows on keys {res.keys}; values {res.values}"
           + (f"; ignored {res.ignored}" if res.ignored else ""))
+    if res.new_metric_rows:
+        print(f"not compared: {res.new_metric_rows} rows of metrics the baseline has no row of")
     within = (f"the per-row tolerances of {tolerance} (rtol={rtol:g} elsewhere)"
               if tolerance else f"rtol={rtol:g}") + f", atol={atol:g}"
     if res.ok:

@@ -36,6 +36,7 @@ class CompareResult:
     ignored: list
     n_rows: int
     moved: pd.DataFrame = field(default_factory=pd.DataFrame)
+    new_metric_rows: int = 0
 
     @property
     def ok(self) -> bool:
@@ -64,7 +65,10 @@ def compare(old: pd.DataFrame, new: pd.DataFrame, rtol: float = 1e-6, atol: floa
     row and value column, matched on the file's key columns; then only the value columns it
     covers are compared (``rtol`` applies to rows it does not cover). ``subset``: rows of
     the baseline missing from ``new`` are not an error (a one-seed re-run against a
-    multi-seed baseline, or ``--only``); rows of ``new`` missing from the baseline still are.
+    multi-seed baseline, or ``--only``); rows of ``new`` missing from the baseline still are,
+    unless their ``metric`` key is one the baseline has no row of (a metric added since the
+    baseline, e.g. the ``horizon_*`` rows: nothing to compare them with; counted in
+    ``new_metric_rows``).
     """
     if rtol < 0 or atol < 0 or not np.isfinite(rtol) or not np.isfinite(atol):
         raise CompareError(f"rtol and atol must be finite and >= 0, got rtol={rtol}, atol={atol}")
@@ -96,8 +100,11 @@ def compare(old: pd.DataFrame, new: pd.DataFrame, rtol: float = 1e-6, atol: floa
     o, n = (df[keys + values].astype({k: str for k in keys}) for df in (old, new))
     merged = o.merge(n, on=keys, how="outer", suffixes=("_old", "_new"), indicator=True)
     only = merged[merged["_merge"] != "both"]
+    n_new = 0
     if subset:
         only = only[only["_merge"] == "right_only"]
+        added = _new_metric(only, old, keys)
+        n_new, only = int(added.sum()), only[~added]
     if not only.empty:
         side = only["_merge"].map({"left_only": f"only in {names[0]}",
                                    "right_only": f"only in {names[1]}"})
@@ -122,7 +129,14 @@ def compare(old: pd.DataFrame, new: pd.DataFrame, rtol: float = 1e-6, atol: floa
             rel = _rel(old_v, new_v)
             moved.append({**row, "column": c, "old": old_v, "new": new_v, "rel_change": rel,
                           "rtol": r[i]})
-    return CompareResult(keys, values, ignored, len(merged), pd.DataFrame(moved))
+    return CompareResult(keys, values, ignored, len(merged), pd.DataFrame(moved), n_new)
+
+
+def _new_metric(rows: pd.DataFrame, old: pd.DataFrame, keys: list) -> pd.Series:
+    """Which ``rows`` have a ``metric`` key value that no row of ``old`` has."""
+    if "metric" not in keys:
+        return pd.Series(False, index=rows.index)
+    return ~rows["metric"].astype(str).isin(set(old["metric"].astype(str)))
 
 
 def _row_rtol(merged: pd.DataFrame, column: str, tolerances, rtol: float, name) -> np.ndarray:

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from benchmarks.suite import horizon as H
 from benchmarks.suite import metrics as M
 from benchmarks.suite import procs
 from benchmarks.suite.registry import get_case
@@ -51,7 +52,7 @@ CSV_HEADERS = {
         "rmse (m): for one trajectory, metric=rmse_at_step: sqrt(mean over ALL nodes of "
         "|x_pred - x_true|^2) at saved frame `step` (time `time`, s; frame 0 is the initial "
         "state); metric=full_rollout_rmse: the same mean over nodes and frames 1..T-1 (step = "
-        "T-1, the horizon). Clamped nodes are included."),
+        "T-1, the horizon). Clamped nodes are included.", H.CSV_NOTE),
     "rmse_at_step": (
         "rmse_at_step.csv: the paper's table (Tables 1 and 2 of MeshODENet).",
         "rmse_mean / rmse_std (m): mean and population std over the test trajectories of the "
@@ -214,7 +215,8 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
     decision = decide_run(run_dir, config, finished=(RECORD_FILE, METRICS_FILE),
                           ids={"run": spec.run_id, **{k: getattr(spec, k) for k in
                                                       ("case", "model", "preset", "seed")}})
-    if decision.action == "reuse":
+    if decision.action == "reuse":  # a run finished before the horizon rows gains them now
+        _add_horizon(spec, run_dir, data_dir, device)
         return {**decision.stored, "reused": True}
     # every input is checked before the first epoch: a corrupt test split fails now
     true = store.load_split(get_case(spec.case), "test", data_dir)
@@ -273,7 +275,21 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
 
         rec.update(UNTRAINED_RECORD)
     store.save_json(rec_path, rec)
+    # after the record: should it fail, the run is finished and its reuse adds the rows
+    _add_horizon(spec, run_dir, data_dir, device, true)
     return rec
+
+
+def _add_horizon(spec: RunSpec, run_dir: Path, data_dir, device: str, arrays=None) -> None:
+    """Append the run's long-horizon rows to its ``METRICS_FILE`` (``horizon.add_to_run``); a
+    solver reference that cannot be computed is logged, and the run kept without the rows."""
+    from groundtruth.implicit import ConvergenceError
+
+    log = lambda msg: _log(f"{spec.run_id}: long horizon: {msg}")  # noqa: E731
+    try:
+        H.add_to_run(run_dir, run_dir / METRICS_FILE, data_dir, device, arrays, log)
+    except (H.HorizonError, ConvergenceError) as e:  # the run itself is fine: keep it
+        log(f"not computed ({type(e).__name__}: {e}); the next `meshbench run` retries")
 
 
 def _cpu_model() -> str:
@@ -438,7 +454,8 @@ def write_results(out: Path, records: list, runs_dir: Path, suite: Suite, *,
                   figures: bool = True, data_dir=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     metrics = pd.concat([_run_metrics(runs_dir, r) for r in records], ignore_index=True)
-    steps = {c: M.table_steps(c, int(metrics.loc[metrics["case"] == c, "step"].max()) + 1)
+    at_step = metrics[metrics["metric"] == "rmse_at_step"]  # not the horizon's later steps
+    steps = {c: M.table_steps(c, int(at_step.loc[at_step["case"] == c, "step"].max()) + 1)
              for c in metrics["case"].unique()}
     table = M.rmse_at_step_table(
         metrics[metrics["metric"] == "rmse_at_step"].drop(columns=["metric", "run"]), steps)
@@ -514,6 +531,7 @@ def render_markdown(table: pd.DataFrame, metrics: pd.DataFrame, records: list,
             lines.append("| " + " | ".join(str(v) for v in kv) + " | "
                          + " | ".join(_fmt(d.loc[s, inc]) for s in steps) + " |")
         lines.append("")
+    lines += H.markdown_lines(metrics, keys)
     n_test = table.groupby("case")["n_trajectories"].max()
     lines += ["## Runs", "", "Rollout: wall time of the test rollout per test trajectory (the "
               "learned models roll out up to 16 trajectories at once, the solver one by one).",
