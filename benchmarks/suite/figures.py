@@ -13,7 +13,8 @@ import pandas as pd
 from benchmarks.suite.runs import load_test_rollout
 from groundtruth import store
 
-COLORS = {"meshodenet": "tab:blue", "mgn": "tab:red", "meshodenet_imex": "tab:green"}
+COLORS = {"meshodenet": "tab:blue", "mgn": "tab:red", "meshodenet_imex": "tab:green",
+          "implicit_energy": "tab:purple"}
 
 
 def _plt():

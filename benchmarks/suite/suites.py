@@ -103,9 +103,11 @@ def _both(case: str, preset: str) -> tuple:
     return (RunSpec(case, "meshodenet", preset), RunSpec(case, "mgn", preset))
 
 
-def _three(case: str, preset: str) -> tuple:
-    """MeshODENet, MGN and our MeshODENet-IMEX (docs/TRAINING.md)."""
-    return _both(case, preset) + (RunSpec(case, "meshodenet_imex", preset),)
+def _quick_models(case: str, preset: str) -> tuple:
+    """MeshODENet, MGN and ours: MeshODENet-IMEX (docs/TRAINING.md) and Implicit-Energy
+    (docs/ENERGY.md)."""
+    return _both(case, preset) + (RunSpec(case, "meshodenet_imex", preset),
+                                  RunSpec(case, "implicit_energy", preset))
 
 
 SUITES: dict = {}
@@ -128,7 +130,7 @@ register_suite(Suite(
 register_suite(Suite(
     "quick", "the paper's two cases, MeshODENet, MGN and MeshODENet-IMEX, quick preset: about "
     "20 minutes (data and one seed) on a shared 2-core CPU with --jobs 2 (README)",
-    _three("rod_falling", "quick") + _three("plate_cantilever", "quick"),
+    _quick_models("rod_falling", "quick") + _quick_models("plate_cantilever", "quick"),
     compare_rtol=0.05))
 register_suite(Suite(
     "paper", "the paper's two cases, MeshODENet and MGN, the paper's settings (GPU "
@@ -164,4 +166,4 @@ register_suite(Suite(
     "core with best-so-far checkpoints at 2, 5, 15, 45, 120 and 180 min of CPU time (days of "
     "one core in all; `meshbench curves` evaluates them)",
     tuple(replace(s, overrides=CURVE_OVERRIDES, tag="curves")
-          for s in _three("rod_falling", "quick") + _three("plate_cantilever", "quick"))))
+          for s in _quick_models("rod_falling", "quick") + _quick_models("plate_cantilever", "quick"))))
