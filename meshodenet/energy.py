@@ -138,6 +138,39 @@ class ElementEnergy(nn.Module):
         g = nn.functional.softplus(self.mlp(inp)[..., 0]) / math.log(2.0)
         return yrel * torch.exp(self.log_stiffness) * 0.5 * qhat**self.power * g
 
+    def taylor(self, qhat, static, yhat, yrel):
+        """``(U, dU/dqhat, d2U/dqhat2)``, propagated through the MLP in forward mode by hand
+        (no autograd graph of its own: differentiable in the parameters, and about three times
+        cheaper than double backward)."""
+        z = torch.cat([qhat[..., None], static, yhat[..., None]], -1)
+        dz = d2z = None
+        for layer in self.mlp:
+            if isinstance(layer, nn.Linear):
+                w = layer.weight
+                dz = w[:, 0].expand(*z.shape[:-1], -1) if dz is None else dz @ w.T
+                d2z = None if d2z is None else d2z @ w.T
+                z = layer(z)
+            else:  # SiLU: a = z s(z)
+                sg = torch.sigmoid(z)
+                a1 = sg * (1 + z * (1 - sg))
+                a2 = sg * (1 - sg) * (2 + z * (1 - 2 * sg))
+                d2z = a2 * dz**2 + (0 if d2z is None else a1 * d2z)
+                dz = a1 * dz
+                z = z * sg
+        o, do = z[..., 0], dz[..., 0]
+        d2o = torch.zeros_like(o) if d2z is None else d2z[..., 0]
+        sg = torch.sigmoid(o)
+        ln2 = math.log(2.0)
+        g = nn.functional.softplus(o) / ln2
+        g1 = sg * do / ln2
+        g2 = (sg * (1 - sg) * do**2 + sg * d2o) / ln2
+        c = yrel * torch.exp(self.log_stiffness)
+        q = qhat
+        if self.power == 2:
+            return (c * 0.5 * q**2 * g, c * (q * g + 0.5 * q**2 * g1),
+                    c * (g + 2 * q * g1 + 0.5 * q**2 * g2))
+        return c * 0.5 * q * g, c * 0.5 * (g + q * g1), c * (g1 + 0.5 * q * g2)
+
 
 class EnergySystem:
     """The learned energy of one mesh for a batch of ``B`` moduli, in float64.
@@ -189,15 +222,15 @@ class EnergySystem:
                                 self.yrel[:, None].expand(self.B, n))
 
     def derivatives(self, kind, q, order: int, create_graph: bool):
-        """``(U'(q), U''(q) or None)`` per element ``(B, n)``."""
-        with torch.enable_grad():
-            qg = q.detach().requires_grad_(True)
-            u = self._energy_q(kind, qg)
-            (d1,) = torch.autograd.grad(u.sum(), qg, create_graph=create_graph or order > 1)
-            if order < 2:
-                return d1, None
-            (d2,) = torch.autograd.grad(d1.sum(), qg, create_graph=create_graph)
-        return d1, d2
+        """``(U'(q), U''(q) or None)`` per element ``(B, n)`` (on the parameters' graph with
+        ``create_graph``)."""
+        nodes, static, _, _ = self.elems[kind]
+        n, sig = len(nodes), self.sigma[kind]
+        with torch.set_grad_enabled(create_graph and torch.is_grad_enabled()):
+            _, d1, d2 = self.terms[kind].taylor(
+                q / sig, static.expand(self.B, n, -1), self.yhat[:, None].expand(self.B, n),
+                self.yrel[:, None].expand(self.B, n))
+        return d1 / sig, (d2 / sig**2 if order > 1 else None)
 
     def energy(self, x: torch.Tensor) -> torch.Tensor:
         """Total energy per graph ``(B,)`` (differentiable in the parameters)."""
@@ -220,16 +253,22 @@ class EnergySystem:
         return g.reshape(B, N, 3)
 
     @torch.no_grad()
-    def hessian(self, x: torch.Tensor, geo=None) -> torch.Tensor:
-        """Dense ``d2U/dx2 (B, 3N, 3N)`` assembled from the element Hessians."""
+    def hessian(self, x: torch.Tensor, geo=None, act: torch.Tensor | None = None):
+        """``d2U/dx2`` assembled from the element Hessians: dense ``(B, 3N, 3N)``, or only the
+        rows and columns of the coordinates ``act`` (``(B, n, n)``, the others never formed)."""
         B, N, _ = x.shape
         geo = geo or self.geometry(x)
-        H = x.new_zeros(B, (3 * N) ** 2)
+        where = torch.arange(3 * N, device=x.device) if act is None else \
+            torch.full((3 * N,), -1, dtype=torch.long, device=x.device).index_copy_(
+                0, act, torch.arange(len(act), device=x.device))
+        n = 3 * N if act is None else len(act)
+        H = x.new_zeros(B, n * n)
         for kind, (q, dq, d2q) in geo.items():
             d1, d2 = self.derivatives(kind, q, 2, False)
             he = d2[..., None, None] * dq[..., :, None] * dq[..., None, :] \
                 + d1[..., None, None] * d2q
-            dof = self._dofs(kind, N)
-            flat = (dof[:, :, None] * (3 * N) + dof[:, None, :]).reshape(-1)
-            H.index_add_(1, flat, he.reshape(B, -1))
-        return H.reshape(B, 3 * N, 3 * N)
+            dof = where[self._dofs(kind, N)]
+            keep = ((dof[:, :, None] >= 0) & (dof[:, None, :] >= 0)).reshape(-1)
+            flat = (dof[:, :, None] * n + dof[:, None, :]).reshape(-1)
+            H.index_add_(1, flat[keep], he.reshape(B, -1)[:, keep])
+        return H.reshape(B, n, n)

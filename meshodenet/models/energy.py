@@ -61,7 +61,7 @@ class EnergyConfig:
     hidden: int = 32
     layers: int = 2
     shooting: int = 0
-    newton_rtol: float = 1e-10
+    newton_rtol: float = 1e-8
     newton_max_iter: int = 30
 
     def __post_init__(self):
@@ -140,25 +140,38 @@ class ImplicitEnergy(TrajectoryModel):
         return r.reshape(len(x), -1)
 
     def _matrix(self, sys, x, h, act, geo=None):
-        A = sys.hessian(x.detach(), geo)
-        d = (self.mass / h**2 + self.damping / h).repeat_interleave(3)
-        A = A + torch.diag(d)
-        return A[:, act][:, :, act]
+        """The Newton matrix ``diag(m/h^2 + c/h) + d2U/dx2`` on the coordinates ``act``."""
+        A = sys.hessian(x.detach(), geo, act)
+        d = (self.mass / h**2 + self.damping / h).repeat_interleave(3)[act]
+        return A + torch.diag(d)
 
     @staticmethod
-    def _solve(A, b):
-        """``A^{-1} b`` for symmetric ``A (B, n, n)``: Cholesky, with diagonal shifts where a
-        graph's ``A`` is not positive definite (the solution is then a descent direction)."""
+    def _factor(A, convexify: bool = False):
+        """A factorisation of symmetric ``A (B, n, n)``: Cholesky where ``A`` is positive
+        definite, else LU (the exact Newton step), or with ``convexify`` Cholesky of ``A`` with
+        growing diagonal shifts (a descent direction of the objective)."""
         L, info = torch.linalg.cholesky_ex(A)
-        shift = 1e-8
-        while torch.any(info) and shift < 1e3:
+        if not torch.any(info):
+            return "cholesky", L
+        if not convexify:
+            return "lu", torch.linalg.lu_factor(A)
+        shift = 1e-6
+        while torch.any(info) and shift < 1e4:
             d = torch.diagonal(A, dim1=1, dim2=2).abs()
             bad = (info > 0).to(A.dtype)[:, None, None]
             L, info = torch.linalg.cholesky_ex(A + bad * shift * torch.diag_embed(d))
-            shift *= 100
-        if torch.any(info):
-            return torch.linalg.solve(A, b)
-        return torch.cholesky_solve(b[..., None], L)[..., 0]
+            shift *= 10
+        return "cholesky", L
+
+    @staticmethod
+    def _substitute(factor, b):
+        kind, f = factor
+        if kind == "cholesky":
+            return torch.cholesky_solve(b[..., None], f)[..., 0]
+        return torch.linalg.lu_solve(*f, b[..., None])[..., 0]
+
+    def _solve(self, A, b):
+        return self._substitute(self._factor(A), b)
 
     def _objective(self, sys, x, xk, vk, h):
         """The step's objective per graph ``(B,)`` (its gradient is ``_residual``)."""
@@ -167,26 +180,36 @@ class ImplicitEnergy(TrajectoryModel):
             - self.force * x
         return phi.sum((1, 2)) + sys.energy(x)
 
-    def _newton(self, sys, xk, vk, h, act, where: str):
-        """``x_{k+1}`` (no graph) and the detached matrix at it: Newton with a backtracking
-        line search on the objective."""
+    def _newton(self, sys, xk, vk, h, act, where: str, chord: bool = False):
+        """``x_{k+1}`` (no graph) and the last Newton matrix: Newton with a backtracking line
+        search on the objective. ``chord``: keep the factorised matrix while each step shrinks
+        at least threefold (the returned matrix is then not the one at ``x_{k+1}``)."""
         xk, vk = xk.detach(), vk.detach()
         x = xk.clone()
         flat = x.reshape(len(x), -1)
         flat[:, act] += h * vk.reshape(len(x), -1)[:, act]
         tol = self.config.newton_rtol * self.length
+        factor, prev = None, math.inf
         for it in range(self.config.newton_max_iter):
-            geo = sys.geometry(x)
+            geo = sys.geometry(x, second=factor is None)
             r = self._residual(sys, x, xk, vk, h, geo=geo)[:, act]
-            A = self._matrix(sys, x, h, act, geo)
-            dx = self._solve(A, -r)
+            if factor is None:
+                A = self._matrix(sys, x, h, act, geo)
+                factor = self._factor(A)
+            dx = self._substitute(factor, -r)
+            if factor[0] == "lu" and bool(((r * dx).sum(1) >= 0).any()):
+                # not a descent direction (the objective is not convex here): convexify
+                factor = self._factor(A, convexify=True)
+                dx = self._substitute(factor, -r)
             step = float(dx.abs().max())
             if not math.isfinite(step):
                 break
             if step <= tol:
                 x.reshape(len(x), -1)[:, act] += dx
-                # the matrix one (converged) step before x: the same up to the tolerance
                 return x, A
+            if not chord or step > prev / 3:
+                factor = None
+            prev = step
             x = self._line_search(sys, x, xk, vk, h, act, dx, r)
         raise NewtonError(f"implicit_energy: Newton did not converge at {where}, h = {h:.4g} s: "
                           f"last step {step:.3g} m > {tol:.3g} m after {it + 1} iterations "
@@ -214,9 +237,10 @@ class ImplicitEnergy(TrajectoryModel):
 
     def step(self, sys, xk, vk, h, act, where: str = "a step"):
         """One backward-Euler step: ``x_{k+1}``, differentiable by the implicit function."""
+        grad = torch.is_grad_enabled()
         with torch.no_grad():
-            x, A = self._newton(sys, xk, vk, h, act, where)
-        if not torch.is_grad_enabled():
+            x, A = self._newton(sys, xk, vk, h, act, where, chord=not grad)
+        if not grad:
             return x
         r = self._residual(sys, x, xk, vk, h, create_graph=True)[:, act]
         out = x.reshape(len(x), -1).clone()
