@@ -112,7 +112,7 @@ def test_in_plane_solve_equals_the_full_solve():
 @pytest.mark.parametrize("make", [rod_arrays, strip_arrays])
 def test_implicit_gradient_matches_finite_differences_of_the_solve(make):
     arrays = make()
-    model, tr = _model(arrays)
+    model, tr = _model(arrays, newton_rtol=1e-11)  # converged far below the differences
     idx = torch.tensor([0, 1])
     t = tr.t[:3]
 
@@ -123,7 +123,8 @@ def test_implicit_gradient_matches_finite_differences_of_the_solve(make):
     model.zero_grad()
     loss().backward()
     params = [p for p in model.parameters()]
-    eps = 1e-6
+    gmax = max(float(p.grad.abs().max()) for p in params)
+    eps = 1e-4  # the loss is smooth; a larger step keeps Newton's tolerance out of the quotient
     for p in params:
         flat, gflat = p.data.reshape(-1), p.grad.reshape(-1)
         for i in range(0, len(flat), max(len(flat) // 3, 1)):
@@ -135,7 +136,7 @@ def test_implicit_gradient_matches_finite_differences_of_the_solve(make):
                 lm = float(loss())
                 flat[i] = old
             fd = (lp - lm) / (2 * eps)
-            assert abs(float(gflat[i]) - fd) <= 1e-4 * abs(fd) + 1e-9, (p.shape, i)
+            assert abs(float(gflat[i]) - fd) <= 1e-3 * abs(fd) + 1e-5 * gmax, (p.shape, i)
 
 
 def test_gradient_matches_backpropagation_through_converged_newton():
@@ -218,18 +219,19 @@ def test_least_squares_stiffness_recovers_a_quadratic_energy():
         for term in model.terms.values():
             for p in term.mlp.parameters():
                 p.zero_()
-        model.edge_sigma.fill_(1e-4)
+        model.edge_sigma.fill_(1e-3)
         model.hinge_sigma.fill_(1e-3)
         model.ystats.copy_(torch.tensor([1e9, 20.0, 1.0, 1e-6]))
-        model.terms["edge"].log_stiffness.fill_(-9.0)
-        model.terms["hinge"].log_stiffness.fill_(-12.0)
+        # stiffnesses about 100 times m / h^2
+        model.terms["edge"].log_stiffness.fill_(-19.0)
+        model.terms["hinge"].log_stiffness.fill_(-12.5)
         pos, vel = model.rollout(tr.pos[:, 0], tr.vel[:, 0] * 0, tr.youngs, tr.t)
         for term in model.terms.values():
             term.log_stiffness.fill_(0.0)
     data = Trajectories(tr.t, pos, vel * 0 + vel[:, :1] * 0, tr.youngs)
     model._fit_log_stiffness(data, every=1)
-    assert abs(float(model.terms["edge"].log_stiffness) + 9.0) < 1e-5
-    assert abs(float(model.terms["hinge"].log_stiffness) + 12.0) < 1e-5
+    assert abs(float(model.terms["edge"].log_stiffness) + 19.0) < 1e-5
+    assert abs(float(model.terms["hinge"].log_stiffness) + 12.5) < 1e-5
 
 
 def test_registered_trains_and_reloads(tmp_path):

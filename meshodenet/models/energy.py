@@ -371,9 +371,9 @@ class ImplicitEnergy(TrajectoryModel):
 #: ``quick`` per mesh kind: ``(TrainConfig fields, EnergyConfig fields)`` over the paper's
 #: optimiser (chosen on validation, docs/TRAINING.md "Implicit-Energy").
 QUICK = {
-    "line": (dict(epochs=4, lr=3e-3, lr_milestones=(3,), batch_size=32, max_batches=25,
+    "line": (dict(epochs=4, lr=1e-2, lr_milestones=(3,), batch_size=32, max_batches=25,
                   weight_decay=0.0, grad_clip=1.0), dict()),
-    "triangle": (dict(epochs=6, lr=3e-3, lr_milestones=(5,), batch_size=32, max_batches=50,
+    "triangle": (dict(epochs=6, lr=1e-2, lr_milestones=(5,), batch_size=32, max_batches=50,
                       weight_decay=0.0, grad_clip=1.0), dict()),
 }
 
