@@ -14,6 +14,7 @@ from pathlib import Path
 from meshbench_registry import lookup
 from meshodenet.data import Mesh
 from meshodenet.integrators import INTEGRATORS
+from meshodenet.models.energy import EnergyConfig, ImplicitEnergy, energy_presets
 from meshodenet.models.imex import ImexConfig, MeshODENetIMEX, imex_presets
 from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig, meshodenet_presets
 from meshodenet.models.mgn import MeshGraphNet, MeshGraphNetConfig, mgn_presets
@@ -58,6 +59,10 @@ MODELS: dict = {
     "mgn_unrolled": ModelSpec(UnrolledMGN, UnrolledMGNConfig, unrolled_mgn_presets,
                               "MeshGraphNet trained through short rollouts of its own "
                               "(docs/MGN.md)"),
+    "implicit_energy": ModelSpec(ImplicitEnergy, EnergyConfig, energy_presets,
+                                 "a learned elastic energy over edges and rod hinges with the "
+                                 "case's masses, loads and drag, one backward-Euler step per "
+                                 "interval (docs/ENERGY.md)"),
 }
 
 __all__ = ["MODELS", "INTEGRATORS", "ModelSpec", "get_model_spec", "register_model",

@@ -14,7 +14,7 @@ from benchmarks.suite.runs import load_test_rollout
 from groundtruth import store
 
 COLORS = {"meshodenet": "tab:blue", "mgn": "tab:red", "meshodenet_imex": "tab:green",
-          "solver_h": "tab:gray"}
+          "implicit_energy": "tab:purple", "solver_h": "tab:gray"}
 
 
 def _plt():

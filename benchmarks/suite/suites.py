@@ -103,9 +103,11 @@ def _both(case: str, preset: str) -> tuple:
     return (RunSpec(case, "meshodenet", preset), RunSpec(case, "mgn", preset))
 
 
-def _three(case: str, preset: str) -> tuple:
-    """MeshODENet, MGN and our MeshODENet-IMEX (docs/TRAINING.md)."""
-    return _both(case, preset) + (RunSpec(case, "meshodenet_imex", preset),)
+def _quick_models(case: str, preset: str) -> tuple:
+    """MeshODENet, MGN and ours: MeshODENet-IMEX (docs/TRAINING.md) and Implicit-Energy
+    (docs/ENERGY.md)."""
+    return _both(case, preset) + (RunSpec(case, "meshodenet_imex", preset),
+                                  RunSpec(case, "implicit_energy", preset))
 
 
 SUITES: dict = {}
@@ -125,6 +127,8 @@ def get_suite(name: str) -> Suite:
 register_suite(Suite(
     "smoke", "rod_cantilever (6 short trajectories), both models, smoke preset: about a "
     "minute, for the tests", _both("rod_cantilever", "smoke")))
+
+
 def _solver(case: str) -> tuple:
     """The case's own solver at the sampling interval, a reference row (nothing is trained;
     its seeds are identical: benchmarks/suite/solver_row.py)."""
@@ -132,11 +136,11 @@ def _solver(case: str) -> tuple:
 
 
 register_suite(Suite(
-    "quick", "the paper's two cases, MeshODENet, MGN and MeshODENet-IMEX, quick preset, and "
-    "the case's solver at the sampling interval (solver_h, a reference row): about 20 minutes "
-    "(data and one seed) on a shared 2-core CPU with --jobs 2 (README)",
-    _three("rod_falling", "quick") + _solver("rod_falling")
-    + _three("plate_cantilever", "quick") + _solver("plate_cantilever"),
+    "quick", "the paper's two cases, MeshODENet, MGN, MeshODENet-IMEX and Implicit-Energy, "
+    "quick preset, and the case's solver at the sampling interval (solver_h, a reference "
+    "row): about 30 minutes (data and one seed) on a shared 2-core CPU with --jobs 2 (README)",
+    _quick_models("rod_falling", "quick") + _solver("rod_falling")
+    + _quick_models("plate_cantilever", "quick") + _solver("plate_cantilever"),
     compare_rtol=0.05))
 register_suite(Suite(
     "paper", "the paper's two cases, MeshODENet and MGN, the paper's settings (GPU "
@@ -148,9 +152,10 @@ register_suite(Suite(
     "preset", _both("plate_hanging", "quick"), compare_rtol=0.05))
 register_suite(Suite(
     "integrators", "MeshODENet on rod_falling (quick preset) with euler / midpoint / rk4 / "
-    "dopri5 (direct gradients) and rk4 with adjoint and checkpointed gradients",
+    "dopri5 (direct gradients), rk4 with adjoint and checkpointed gradients, and the implicit "
+    "backward_euler / sdirk2 (implicit gradients; each 5-50 times rk4's training cost)",
     tuple(RunSpec("rod_falling", "meshodenet", "quick", integrator=i, grad_mode="direct")
-          for i in ("euler", "midpoint", "rk4", "dopri5"))
+          for i in ("euler", "midpoint", "rk4", "dopri5", "backward_euler", "sdirk2"))
     + (RunSpec("rod_falling", "meshodenet", "quick", integrator="rk4", grad_mode="adjoint"),
        RunSpec("rod_falling", "meshodenet", "quick", integrator="rk4",
                grad_mode="checkpoint"))))
@@ -172,4 +177,4 @@ register_suite(Suite(
     "core with best-so-far checkpoints at 2, 5, 15, 45, 120 and 180 min of CPU time (days of "
     "one core in all; `meshbench curves` evaluates them)",
     tuple(replace(s, overrides=CURVE_OVERRIDES, tag="curves")
-          for s in _three("rod_falling", "quick") + _three("plate_cantilever", "quick"))))
+          for s in _quick_models("rod_falling", "quick") + _quick_models("plate_cantilever", "quick"))))

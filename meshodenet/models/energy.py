@@ -1,0 +1,396 @@
+r"""Implicit-Energy: a learned elastic energy stepped by backward Euler at the sampling interval;
+its config, presets and model.
+
+The mechanics the case's mesh already states (lumped masses ``m``, loads ``f``, linear drag
+``c``) is kept, and only the internal elastic energy ``U_theta(x)`` is learned
+(``meshodenet.energy``: a sum over edges and rod hinges of functions of rotation- and
+translation-invariant strains)::
+
+    m x'' = f - c x' - dU_theta/dx.
+
+Each saved interval ``h`` is one backward-Euler step, the minimisation
+
+.. math::
+    x_{k+1} = \arg\min_x \; \sum_i \frac{m_i}{2h^2} |x_i - x_{k,i} - h v_{k,i}|^2
+        + \frac{c_i}{2h} |x_i - x_{k,i}|^2 - f_i \cdot x_i + U_\theta(x),
+    \qquad v_{k+1} = (x_{k+1} - x_k) / h,
+
+solved by Newton's method with the dense Hessian ``diag(m/h^2 + c/h) + d2U/dx2`` (symmetric;
+Cholesky, with an LU fallback). L-stable at any stiffness: the plate's ``omega h`` of 19-34 and
+the rod's drag rate ``c h / m`` of 2.6e5 cost nothing. Clamped nodes stay where they are.
+A planar mesh loaded in its plane (rest ``z`` constant, ``f_z = 0``) started in its plane stays
+there exactly (the energy is even in ``z``), so only the in-plane coordinates are solved for.
+
+Gradients: at the converged ``x*`` one more Newton step ``x* - A^{-1} r(x*)`` is taken with the
+residual ``r`` on the autograd graph and the matrix ``A`` detached; its derivative is the
+implicit-function derivative ``-A^{-1} dr/d(theta, x_k, v_k)``, never back-propagated through
+Newton's iterations.
+
+Training: ``shooting = 0`` (quick) minimises the one-step error linearised at the ground truth,
+``|A^{-1} r(x_{k+1})|^2`` with ``A`` at the true next frame (no Newton), over all (trajectory,
+frame) pairs, normalised by the mean squared one-step motion (training split); the velocity of
+a frame is the backward difference of the positions, as in a rollout. ``shooting = S > 0``
+trains on windows of ``S`` exact steps from a true frame instead.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from meshodenet.data import Mesh, Trajectories
+from meshodenet.energy import TYPES, ElementEnergy, EnergySystem, measure, static_features
+from meshodenet.implicit import NewtonError
+from meshodenet.interface import TrajectoryModel
+from meshodenet.models.common import check_int, check_nonnegative, check_preset, \
+    paper_train_config
+from meshodenet.train import TrainConfig
+
+
+@dataclass(frozen=True)
+class EnergyConfig:
+    """``hidden``, ``layers``: width and hidden layers of each element type's MLP;
+    ``shooting``: 0 the linearised one-step loss, ``S > 0`` windows of ``S`` steps;
+    ``newton_rtol``: Newton stops when no node moves by more than this times the mean rest edge
+    length; ``newton_max_iter``: iterations before ``NewtonError``."""
+
+    hidden: int = 32
+    layers: int = 2
+    shooting: int = 0
+    newton_rtol: float = 1e-8
+    newton_max_iter: int = 30
+
+    def __post_init__(self):
+        for name, lo in (("hidden", 1), ("layers", 0), ("shooting", 0), ("newton_max_iter", 1)):
+            check_int(self, name, lo)
+        check_nonnegative("EnergyConfig", "newton_rtol", self.newton_rtol)
+        if not self.newton_rtol > 0:
+            raise ValueError(f"EnergyConfig.newton_rtol must be > 0, got {self.newton_rtol!r}")
+
+
+class ImplicitEnergy(TrajectoryModel):
+    """See the module docstring. Shapes as ``TrajectoryModel``."""
+
+    name = "implicit_energy"
+    integrator_id = "backward_euler"
+    grad_mode_id = "implicit"
+
+    def __init__(self, mesh: Mesh, config: EnergyConfig, train: Trajectories | None = None):
+        super().__init__(mesh, config)
+        feats = static_features(mesh)
+        self.kinds = [k for k in TYPES if k in feats and len(feats[k][0])]
+        # float64 throughout: Newton resolves stiff springs' stretches of 1e-5
+        self.terms = nn.ModuleDict({k: ElementEnergy(k, config.hidden, config.layers)
+                                    for k in self.kinds}).double()
+        f64 = dict(dtype=torch.float64)
+        x0 = torch.as_tensor(mesh.rest_pos, **f64)
+        for k in self.kinds:
+            nodes, static, rest = feats[k]
+            nodes = torch.as_tensor(nodes)
+            l0 = (x0[nodes[:, 1]] - x0[nodes[:, 0]]).norm(dim=-1) if k == "edge" \
+                else torch.ones(len(nodes), **f64)
+            self.register_buffer(f"{k}_nodes", nodes)
+            self.register_buffer(f"{k}_static", torch.as_tensor(static, **f64))
+            self.register_buffer(f"{k}_rest", torch.as_tensor(rest, **f64))
+            self.register_buffer(f"{k}_l0", l0)
+            self.register_buffer(f"{k}_sigma", torch.ones((), **f64))
+        for name in ("mass", "damping"):
+            self.register_buffer(name, torch.as_tensor(getattr(mesh, name), **f64))
+        self.register_buffer("force", torch.as_tensor(mesh.force, **f64))
+        self.register_buffer("free", torch.as_tensor(mesh.node_type == 0))
+        # Ybar, mean and std of log Y, mean squared one-step motion (training split)
+        self.register_buffer("ystats", torch.ones(4, **f64))
+        edges = np.asarray(mesh.edges)
+        self.length = float(np.linalg.norm(mesh.rest_pos[edges[:, 1]]
+                                           - mesh.rest_pos[edges[:, 0]], axis=1).mean())
+        self.planar = bool(np.ptp(mesh.rest_pos[:, 2]) == 0 and not np.any(mesh.force[:, 2]))
+        if train is not None:
+            self._statistics(train)
+            self._fit_log_stiffness(train)
+
+    # --- the system ---------------------------------------------------------------------------
+    def _elems(self):
+        return {k: (getattr(self, f"{k}_nodes"), getattr(self, f"{k}_static"),
+                    getattr(self, f"{k}_rest"), getattr(self, f"{k}_l0")) for k in self.kinds}
+
+    def system(self, youngs: torch.Tensor) -> EnergySystem:
+        s = self.ystats
+        return EnergySystem(self.terms, self._elems(),
+                            {k: getattr(self, f"{k}_sigma") for k in self.kinds},
+                            youngs, float(s[0]), (float(s[1]), float(s[2])))
+
+    def _active(self, x0, v0) -> torch.Tensor:
+        """Indices into the ``3N`` coordinates that Newton solves for."""
+        dims = 3
+        if self.planar and torch.all(x0[..., 2] == float(self.mesh.rest_pos[0, 2])) \
+                and not torch.any(v0[..., 2]):
+            dims = 2
+        nodes = torch.nonzero(self.free).reshape(-1)
+        return (3 * nodes[:, None] + torch.arange(dims, device=nodes.device)).reshape(-1)
+
+    def _residual(self, sys, x, xk, vk, h, create_graph=False, geo=None):
+        """``r (B, 3N)``: the gradient of the step's objective at ``x``."""
+        m, c = self.mass[:, None], self.damping[:, None]
+        r = m / h**2 * (x - xk - h * vk) + c / h * (x - xk) - self.force \
+            + sys.gradient(x, create_graph, geo)
+        return r.reshape(len(x), -1)
+
+    def _matrix(self, sys, x, h, act, geo=None):
+        """The Newton matrix ``diag(m/h^2 + c/h) + d2U/dx2`` on the coordinates ``act``."""
+        A = sys.hessian(x.detach(), geo, act)
+        d = (self.mass / h**2 + self.damping / h).repeat_interleave(3)[act]
+        return A + torch.diag(d)
+
+    @staticmethod
+    def _factor(A, convexify: bool = False):
+        """A factorisation of symmetric ``A (B, n, n)``: Cholesky where ``A`` is positive
+        definite, else LU (the exact Newton step), or with ``convexify`` Cholesky of ``A`` with
+        growing diagonal shifts (a descent direction of the objective)."""
+        L, info = torch.linalg.cholesky_ex(A)
+        if not torch.any(info):
+            return "cholesky", L
+        if not convexify:
+            return "lu", torch.linalg.lu_factor(A)
+        shift = 1e-6
+        while torch.any(info) and shift < 1e4:
+            d = torch.diagonal(A, dim1=1, dim2=2).abs()
+            bad = (info > 0).to(A.dtype)[:, None, None]
+            L, info = torch.linalg.cholesky_ex(A + bad * shift * torch.diag_embed(d))
+            shift *= 10
+        return "cholesky", L
+
+    @staticmethod
+    def _substitute(factor, b):
+        kind, f = factor
+        if kind == "cholesky":
+            return torch.cholesky_solve(b[..., None], f)[..., 0]
+        return torch.linalg.lu_solve(*f, b[..., None])[..., 0]
+
+    def _solve(self, A, b):
+        return self._substitute(self._factor(A), b)
+
+    def _objective(self, sys, x, xk, vk, h):
+        """The step's objective per graph ``(B,)`` (its gradient is ``_residual``)."""
+        m, c = self.mass[:, None], self.damping[:, None]
+        phi = m / (2 * h**2) * (x - xk - h * vk) ** 2 + c / (2 * h) * (x - xk) ** 2 \
+            - self.force * x
+        return phi.sum((1, 2)) + sys.energy(x)
+
+    def _newton(self, sys, xk, vk, h, act, where: str, chord: bool = False):
+        """``x_{k+1}`` (no graph) and the last Newton matrix: Newton with a backtracking line
+        search on the objective. ``chord``: keep the factorised matrix while each step shrinks
+        at least threefold (the returned matrix is then not the one at ``x_{k+1}``)."""
+        xk, vk = xk.detach(), vk.detach()
+        x = xk.clone()
+        flat = x.reshape(len(x), -1)
+        flat[:, act] += h * vk.reshape(len(x), -1)[:, act]
+        tol = self.config.newton_rtol * self.length
+        factor, prev = None, math.inf
+        for it in range(self.config.newton_max_iter):
+            geo = sys.geometry(x, second=factor is None)
+            r = self._residual(sys, x, xk, vk, h, geo=geo)[:, act]
+            if factor is None:
+                A = self._matrix(sys, x, h, act, geo)
+                factor = self._factor(A)
+            dx = self._substitute(factor, -r)
+            if factor[0] == "lu" and bool(((r * dx).sum(1) >= 0).any()):
+                # not a descent direction (the objective is not convex here): convexify
+                factor = self._factor(A, convexify=True)
+                dx = self._substitute(factor, -r)
+            step = float(dx.abs().max())
+            if not math.isfinite(step):
+                break
+            if step <= tol:
+                x.reshape(len(x), -1)[:, act] += dx
+                return x, A
+            if not chord or step > prev / 3:
+                factor = None
+            prev = step
+            x = self._line_search(sys, x, xk, vk, h, act, dx, r)
+        raise NewtonError(f"implicit_energy: Newton did not converge at {where}, h = {h:.4g} s: "
+                          f"last step {step:.3g} m > {tol:.3g} m after {it + 1} iterations "
+                          f"(largest residual {float(r.abs().max()):.3g} N)")
+
+    def _line_search(self, sys, x, xk, vk, h, act, dx, r, halvings: int = 12):
+        """``x + alpha dx`` per graph, ``alpha`` halved from 1 until the objective decreases
+        (Armijo); the full step where none does (Newton then reports)."""
+        phi0 = self._objective(sys, x, xk, vk, h)
+        slope = (r * dx).sum(1)
+        alpha = torch.ones(len(x), dtype=x.dtype, device=x.device)
+        done = torch.zeros(len(x), dtype=torch.bool, device=x.device)
+        for _ in range(halvings):
+            trial = x.clone()
+            trial.reshape(len(x), -1)[:, act] += alpha[:, None] * dx
+            ok = self._objective(sys, trial, xk, vk, h) <= phi0 + 1e-4 * alpha * slope
+            done = done | ok
+            if bool(done.all()):
+                break
+            alpha = torch.where(done, alpha, alpha / 2)
+        alpha = torch.where(done, alpha, torch.ones_like(alpha))
+        out = x.clone()
+        out.reshape(len(x), -1)[:, act] += alpha[:, None] * dx
+        return out
+
+    def step(self, sys, xk, vk, h, act, where: str = "a step"):
+        """One backward-Euler step: ``x_{k+1}``, differentiable by the implicit function."""
+        grad = torch.is_grad_enabled()
+        with torch.no_grad():
+            x, A = self._newton(sys, xk, vk, h, act, where, chord=not grad)
+        if not grad:
+            return x
+        r = self._residual(sys, x, xk, vk, h, create_graph=True)[:, act]
+        out = x.reshape(len(x), -1).clone()
+        out[:, act] = out[:, act] - self._solve(A, r)
+        return out.reshape(x.shape)
+
+    # --- rollouts -----------------------------------------------------------------------------
+    def rollout(self, x0, v0, youngs, t):
+        dtype = x0.dtype
+        x = x0.to(torch.float64)
+        v = v0.to(torch.float64) * self.free[:, None]
+        t = t.to(torch.float64)
+        sys = self.system(youngs)
+        act = self._active(x, v)
+        pos, vel = [x], [v]
+        for k in range(len(t) - 1):
+            h = float(t[k + 1] - t[k])
+            xn = self.step(sys, x, v, h, act, f"interval {k} (t = {float(t[k]):.4g} s)")
+            v, x = (xn - x) / h, xn
+            pos.append(x)
+            vel.append(v)
+        return torch.stack(pos, 1).to(dtype), torch.stack(vel, 1).to(dtype)
+
+    # --- statistics and initial stiffness (training split only) ------------------------------
+    @torch.no_grad()
+    def _statistics(self, train: Trajectories) -> None:
+        y = train.youngs.to(torch.float64)
+        ly = torch.log(y)
+        sd = float(ly.std()) if len(y) > 1 and float(ly.std()) > 0 else 1.0
+        pos = train.pos.to(torch.float64)
+        step = (pos[:, 1:] - pos[:, :-1])[:, :, self.free]
+        self.ystats.copy_(torch.tensor([float(y.mean()), float(ly.mean()), sd,
+                                        float((step**2).sum(-1).mean())]))
+        for k, (nodes, _, rest, l0) in self._elems().items():
+            q = measure(k, pos[:, :, nodes], rest, l0)
+            rms = float(torch.sqrt((q**2).mean()))
+            getattr(self, f"{k}_sigma").fill_(rms if rms > 0 else 1.0)
+
+    def _frames(self, data: Trajectories, samples: torch.Tensor):
+        """``(traj, x_k, v_k, x_{k+1}, h)`` of samples: ``v_k`` the backward difference
+        (the stored ``v_0`` at frame 0), float64."""
+        samples = samples.to(data.pos.device)
+        T = data.n_frames
+        traj, k = samples // (T - 1), samples % (T - 1)
+        pos = data.pos.to(torch.float64)
+        t = data.t.to(torch.float64)
+        h = t[k + 1] - t[k]
+        if not torch.allclose(h, h[0].expand_as(h), rtol=1e-4):
+            raise ValueError("implicit_energy trains on evenly sampled trajectories only")
+        hk = (t[k] - t[(k - 1).clamp(min=0)]).clamp_min(1e-300)[:, None, None]
+        vk = torch.where((k == 0)[:, None, None], data.vel[traj, 0].to(torch.float64),
+                         (pos[traj, k] - pos[traj, (k - 1).clamp(min=0)]) / hk)
+        return traj, pos[traj, k], vk * self.free[:, None], pos[traj, k + 1], float(h[0])
+
+    @torch.no_grad()
+    def _fit_log_stiffness(self, train: Trajectories, every: int = 5) -> None:
+        """``a_t`` from the least-squares momentum balance of the training frames with
+        ``g = 1``: the stiffness scales that best explain ``m a + c v - f`` (free nodes)."""
+        T = train.n_frames
+        samples = torch.arange(0, len(train) * (T - 1), every)
+        traj, xk, vk, x1, h = self._frames(train, samples)
+        sys = self.system(train.youngs[traj])
+        free = self.free
+        lhs = []
+        for k in self.kinds:
+            one = EnergySystem(nn.ModuleDict({k: self.terms[k]}), {k: self._elems()[k]},
+                               {k: getattr(self, f"{k}_sigma")}, train.youngs[traj],
+                               sys.yrel.new_tensor(float(self.ystats[0])).item(),
+                               (float(self.ystats[1]), float(self.ystats[2])))
+            lhs.append(one.gradient(x1)[:, free].reshape(-1))
+        m, c = self.mass[:, None], self.damping[:, None]
+        rhs = -(m / h**2 * (x1 - xk - h * vk) + c / h * (x1 - xk) - self.force)[:, free]
+        G = torch.stack(lhs, 1)
+        s = torch.linalg.lstsq(G, rhs.reshape(-1, 1)).solution[:, 0]
+        scale = G.abs().amax(0)
+        for k, sk, gk in zip(self.kinds, s, scale):
+            sk = float(sk) if float(sk) > 0 else 1e-3 * float(s.abs().max())
+            self.terms[k].log_stiffness.fill_(math.log(max(sk, 1e-30)))
+
+    # --- training -----------------------------------------------------------------------------
+    def n_training_samples(self, data: Trajectories) -> int:
+        if self.config.shooting:
+            return len(data) * max((data.n_frames - 1) // self.config.shooting, 1)
+        return len(data) * (data.n_frames - 1)
+
+    def training_loss(self, data, samples, generator=None):
+        if self.config.shooting:
+            return self._window_loss(data, samples, generator)
+        traj, xk, vk, x1, h = self._frames(data, samples)
+        sys = self.system(data.youngs[traj])
+        act = self._active(xk, vk)
+        geo = sys.geometry(x1)
+        A = self._matrix(sys, x1, h, act, geo)
+        r = self._residual(sys, x1, xk, vk, h, create_graph=True, geo=geo)[:, act]
+        d = self._solve(A, r)
+        n = len(self.free.nonzero())
+        return (d**2).sum() / (len(traj) * n * float(self.ystats[3]))
+
+    def _window_loss(self, data, samples, generator):
+        S = self.config.shooting
+        T = data.n_frames
+        per = max((T - 1) // S, 1)
+        traj = samples // per
+        off = int(torch.randint(0, max(T - 1 - per * S, 0) + 1, (), generator=generator))
+        start = (samples % per) * S + off
+        xk = data.pos[traj, start].to(torch.float64)
+        vk = torch.where((start == 0)[:, None, None], data.vel[traj, 0],
+                         data.pos[traj, start] - data.pos[traj, (start - 1).clamp(min=0)]
+                         / float(data.t[1] - data.t[0])).to(torch.float64)
+        vk = torch.where((start == 0)[:, None, None], vk,
+                         (data.pos[traj, start] - data.pos[traj, (start - 1).clamp(min=0)])
+                         .to(torch.float64) / float(data.t[1] - data.t[0]))
+        vk = vk * self.free[:, None]
+        sys = self.system(data.youngs[traj])
+        act = self._active(xk, vk)
+        loss = 0.0
+        for s in range(S):
+            end = (start + s + 1).clamp(max=T - 1)
+            h = float(data.t[1] - data.t[0])
+            xn = self.step(sys, xk, vk, h, act, f"window step {s}")
+            vk, xk = (xn - xk) / h, xn
+            loss = loss + ((xk - data.pos[traj, end].to(torch.float64))[:, self.free] ** 2) \
+                .sum(-1).mean()
+        return loss / (S * float(self.ystats[3]))
+
+
+# --- presets ----------------------------------------------------------------------------------
+#: ``quick`` per mesh kind: ``(TrainConfig fields, EnergyConfig fields)`` over the paper's
+#: optimiser (chosen on validation, docs/TRAINING.md "Implicit-Energy").
+QUICK = {
+    "line": (dict(epochs=4, lr=1e-2, lr_milestones=(3,), batch_size=32, max_batches=25,
+                  weight_decay=0.0, grad_clip=1.0), dict()),
+    "triangle": (dict(epochs=6, lr=1e-2, lr_milestones=(5,), batch_size=32, max_batches=50,
+                      weight_decay=0.0, grad_clip=1.0), dict()),
+}
+
+
+def energy_presets(preset: str, kind: str) -> tuple[TrainConfig, EnergyConfig]:
+    """``(TrainConfig, EnergyConfig)``: ``paper`` the paper's optimiser and schedule with
+    the default model; ``quick`` with ``QUICK``; ``smoke`` a tiny model, 2 epochs of 3 steps."""
+    check_preset(preset)
+    base = paper_train_config(kind)
+    if preset == "paper":
+        return base, EnergyConfig()
+    if preset == "quick":
+        t, m = QUICK[kind]
+        return TrainConfig(**{**base.__dict__, **t}), EnergyConfig(**m)
+    return (TrainConfig(**{**base.__dict__, "epochs": 2, "lr": 1e-3, "lr_milestones": (),
+                           "batch_size": 4, "max_batches": 3}),
+            EnergyConfig(hidden=8, layers=1))
+
+
+__all__ = ["EnergyConfig", "ImplicitEnergy", "energy_presets"]
