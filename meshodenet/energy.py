@@ -32,7 +32,6 @@ from torch.func import hessian, jacrev, vmap
 
 from meshodenet.data import Mesh
 from meshodenet.graph import rod_hinges
-from meshodenet.implicit import NewtonError
 
 TYPES = ("edge", "hinge")
 N_STATIC = 4
@@ -206,7 +205,7 @@ class EnergySystem:
                 xe = x.detach()[:, nodes].reshape(-1, 3 * k)
                 r = rest.repeat(self.B, 1)
                 ll = l0.repeat(self.B)
-                f = lambda z, rr, lll: measure(kind, z.reshape(k, 3), rr, lll)
+                f = lambda z, rr, lll, kind=kind, k=k: measure(kind, z.reshape(k, 3), rr, lll)
                 q = measure(kind, xe.reshape(-1, k, 3), r, ll)
                 dq = vmap(jacrev(f))(xe, r, ll)
                 d2q = vmap(hessian(f))(xe, r, ll) if second else None

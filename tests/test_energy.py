@@ -251,3 +251,15 @@ def test_registered_trains_and_reloads(tmp_path):
         b = again.rollout(tr.pos[:1, 0], tr.vel[:1, 0], tr.youngs[:1], tr.t)[0]
     assert torch.isfinite(a).all() and a.dtype == torch.float32
     assert torch.equal(a, b)
+
+
+def test_window_training_runs_exact_steps():
+    """``shooting = S``: the loss of windows of S Newton steps, finite, with gradients."""
+    arrays = rod_arrays(B=3, T=8)
+    model, tr = _model(arrays, shooting=3)
+    n = model.n_training_samples(tr)
+    assert n == 3 * 2
+    loss = model.training_loss(tr, torch.arange(n), torch.Generator().manual_seed(0))
+    loss.backward()
+    assert torch.isfinite(loss) and loss > 0
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters())
