@@ -2,36 +2,44 @@
 before a clock is read, and its peak memory. On the CPU the waits do nothing and the peak
 memory is the process's resident memory (``enginebench.peak_gb``); on a CUDA device the
 kernels run asynchronously, so every timing ends with ``sync``, and the peak is
-``torch.cuda.max_memory_allocated`` (tensors only, not the CUDA context)."""
+``torch.cuda.max_memory_allocated`` (tensors only, not the CUDA context). torch is imported
+inside the functions: ``meshbench``'s parser loads this module before the kernel settings are
+pinned (``benchmarks.suite.procs``)."""
 
 from __future__ import annotations
 
-import torch
 
-
-def sync(device: torch.device) -> None:
+def sync(device) -> None:
     """Wait until the work queued on ``device`` has run (CUDA); nothing on the CPU."""
+    import torch
+
     if device.type == "cuda":
         torch.cuda.synchronize(device)
 
 
-def reset_peak(device: torch.device) -> None:
+def reset_peak(device) -> None:
     """Start ``cuda_peak_gb`` afresh (CUDA); nothing on the CPU."""
+    import torch
+
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
 
 
-def cuda_peak_gb(device: torch.device) -> float | None:
+def cuda_peak_gb(device) -> float | None:
     """Peak GPU memory held by tensors since ``reset_peak``, GB; None on the CPU."""
+    import torch
+
     if device.type != "cuda":
         return None
     sync(device)
     return torch.cuda.max_memory_allocated(device) / 1024**3
 
 
-def describe(device: torch.device) -> dict:
+def describe(device) -> dict:
     """``device`` (its name as ``--device`` takes it), ``type``, ``name`` (the GPU's, or the
     CPU's model) and on a GPU its memory (GB), compute capability and CUDA version."""
+    import torch
+
     out = {"device": str(device), "type": device.type, "torch": torch.__version__}
     if device.type != "cuda":
         return {**out, "name": _cpu_model()}
