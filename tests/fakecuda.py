@@ -15,8 +15,8 @@ arguments as CUDA does and raises ``DeviceMismatch`` where CUDA would refuse:
 Results are labelled like their tensor arguments; a parameter's ``.grad`` like the parameter.
 Tensors made where the mode does not see them (``nn.Parameter`` wraps its data there: see
 ``label_cpu``) carry no label and are never reported: the emulation finds mixed devices, it
-does not prove their absence. ``torch.cuda.mem_get_info`` is
-replaced while the mode is active (the fast engine sizes its tape by it).
+does not prove their absence. The ``torch.cuda`` functions of ``CUDA_STUBS`` are replaced
+while the mode is active.
 """
 
 from __future__ import annotations
@@ -67,6 +67,13 @@ ANY_DEVICE = {torch.Tensor.copy_, torch._has_compatible_shallow_copy_type,
               torch.Tensor.__repr__, torch.Tensor.__format__}
 
 
+#: ``torch.cuda`` functions the code under test calls, answered as by an idle 16 GiB GPU
+CUDA_STUBS = {"mem_get_info": lambda device=None: (8 * 2**30, 16 * 2**30),
+              "synchronize": lambda device=None: None,
+              "reset_peak_memory_stats": lambda device=None: None,
+              "max_memory_allocated": lambda device=None: 2**20}
+
+
 def label_cpu(module: torch.nn.Module) -> torch.nn.Module:
     """Label the parameters and buffers of ``module`` ``cpu`` (a module built inside the mode
     wraps its parameters where the mode does not see it)."""
@@ -84,12 +91,14 @@ class FakeCuda(TorchFunctionMode):
         self.ops = 0
 
     def __enter__(self):
-        self._mem = torch.cuda.mem_get_info
-        torch.cuda.mem_get_info = lambda device=None: (8 * 2**30, 16 * 2**30)
+        self._saved = {k: getattr(torch.cuda, k) for k in CUDA_STUBS}
+        for k, fn in CUDA_STUBS.items():
+            setattr(torch.cuda, k, fn)
         return super().__enter__()
 
     def __exit__(self, *exc):
-        torch.cuda.mem_get_info = self._mem
+        for k, fn in self._saved.items():
+            setattr(torch.cuda, k, fn)
         return super().__exit__(*exc)
 
     def __torch_function__(self, func, types, args=(), kwargs=None):

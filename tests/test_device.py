@@ -182,3 +182,18 @@ def test_train_on_cuda_records_the_device(tiny_case, tmp_path, monkeypatch):
                   device="cuda", progress=False, evaluate=False)
     sessions = json.loads((tmp_path / "r" / "sessions.json").read_text())
     assert [s["device"] for s in sessions] == ["cuda"]
+
+
+def test_bench_sections_run_on_an_emulated_gpu():
+    """``meshbench bench --device cuda``'s work in this process: every regime, the surrogate's
+    rollouts and MeshGraphNet's step and rollout, with the model and data on the device."""
+    from benchmarks.engine import enginebench as eb
+
+    with FakeCuda():
+        for regime in eb.REGIMES:
+            r = eb.Regime("rod1", regime, "current", 2, "cuda")
+            assert label(next(r.model.parameters())) == "cuda" and r.run(1) >= 1
+        surrogate = eb._surrogate("rod_falling", "current", 2, 1, "cuda")
+        mgn = eb.mgn_bench("rod_falling", ["current"], rounds=1, log=lambda m: None,
+                           device="cuda")
+    assert surrogate["batch"] == 2 and mgn["current"]["step_s"] > 0
