@@ -217,7 +217,6 @@ class Regime:
         self.evals = 1
 
     def run(self, reps: int) -> int:
-
         if self.authors is not None:
             return self.authors.run(reps)
         n = self._run(reps)
