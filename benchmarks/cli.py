@@ -1,7 +1,8 @@
 """The ``meshbench`` command. Each subcommand lives in ``benchmarks/commands/NAME.py`` and
 exposes ``register(subparsers)``; add a module name to ``COMMANDS`` to add a subcommand.
 Heavy imports (torch) happen inside the subcommand, so data commands work without them; not
-even numpy is imported before ``main`` has pinned the kernel settings (``procs.REPRO_ENV``)."""
+even numpy is imported before ``main`` has pinned the kernel settings (``procs.REPRO_ENV``;
+torch's are skipped for ``--device cuda``)."""
 
 from __future__ import annotations
 
@@ -53,7 +54,10 @@ def _interrupt_message(args, argv, e: BaseException) -> str:
 def main(argv=None) -> int:
     from benchmarks.suite import procs
 
-    procs.apply_repro_env()  # before numpy / torch load their kernels (see procs.REPRO_ENV)
+    # the pins must precede numpy / torch loading their kernels (see procs.REPRO_ENV); numpy's
+    # before the command modules load, torch's once --device says whether the model runs on
+    # the CPU (torch is not imported while parsing)
+    procs.apply_repro_env("cuda")
     from benchmarks.suite import plugins
     from benchmarks.suite.procs import LockBusy
     from benchmarks.suite.registry import RegistryError
@@ -61,6 +65,7 @@ def main(argv=None) -> int:
     from groundtruth.store import StoreError
 
     args = build_parser().parse_args(argv)
+    procs.apply_repro_env(getattr(args, "device", None))
     # SIGTERM stops like Ctrl-C (workers stopped, partial work kept), not mid-write
     old_term = None
     if threading.current_thread() is threading.main_thread():

@@ -24,9 +24,23 @@ from meshodenet.network import FastField
 
 # --- autograd wrappers ------------------------------------------------------------------------
 #: A training rollout keeps the activations of every evaluation (no recomputation in the
-#: backward pass) when they take at most this many bytes; otherwise it keeps the state at every
-#: saved time and recomputes one interval at a time. The gradient is the same either way.
+#: backward pass) when they take at most this many bytes on the CPU (``tape_budget``);
+#: otherwise it keeps the state at every saved time and recomputes one interval at a time.
+#: The gradient is the same either way.
 TAPE_BUDGET_BYTES = 384 * 2**20
+#: On a GPU, the share of the device's free memory a rollout's activations may take: its
+#: memory is the GPU's own (not the shared machine's), and recomputation costs a second
+#: forward pass of kernel launches.
+TAPE_GPU_FRACTION = 0.25
+
+
+def tape_budget(device: torch.device) -> int:
+    """Bytes of activations a training rollout on ``device`` keeps (see ``TAPE_BUDGET_BYTES``):
+    that constant on the CPU, ``TAPE_GPU_FRACTION`` of the free memory on a CUDA device."""
+    if device.type != "cuda":
+        return TAPE_BUDGET_BYTES
+    free, _ = torch.cuda.mem_get_info(device)
+    return max(TAPE_BUDGET_BYTES, int(TAPE_GPU_FRACTION * free))
 #: Intervals whose deferred weight-gradient products are summed in one matmul.
 FLUSH_EVERY = 4
 
@@ -108,18 +122,21 @@ def _rk_vjp(field, P, G, scheme, tapes, h, gz_next):
 
 def _steps(t, substeps):
     """Step sizes as Python floats (the reference forms ``h`` as a 0-dim tensor in the dtype of
-    ``t``: the same value, rounded to that dtype)."""
+    ``t``: the same value, rounded to that dtype). Computed from a CPU copy of ``t``: the same
+    arithmetic, without a device synchronisation per step on a GPU."""
+    t = t.detach().cpu()
     return [float((t[k + 1] - t[k]) / substeps) for k in range(len(t) - 1)]
 
 
 def _solve(field, scheme, z0, t, substeps, keep_tapes=False):
     """States ``(T, ...)`` at ``t`` and, when ``keep_tapes`` and they fit in
-    ``TAPE_BUDGET_BYTES``, the tapes of every step (else ``None``)."""
+    ``tape_budget``, the tapes of every step (else ``None``)."""
     P = field.params
     zs, z = [z0], z0
     steps = _steps(t, substeps)
     n_steps = len(steps) * substeps
     kept = [] if keep_tapes else None
+    budget = tape_budget(z0.device) if keep_tapes else 0
     for h in steps:
         for _ in range(substeps):
             if kept is None:
@@ -128,7 +145,7 @@ def _solve(field, scheme, z0, t, substeps, keep_tapes=False):
             tapes: list = []
             z = _rk_step(field, P, scheme, z, h, tapes)
             kept.append(tapes)
-            if len(kept) == 1 and _tape_bytes(tapes) * n_steps > TAPE_BUDGET_BYTES:
+            if len(kept) == 1 and _tape_bytes(tapes) * n_steps > budget:
                 kept = None
         zs.append(z)
     return torch.stack(zs), kept

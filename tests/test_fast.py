@@ -253,7 +253,7 @@ def test_bench_engine_cli_json_report_and_compare(tmp_path, capsys):
 def test_bench_compare_skips_a_graph_whose_mesh_changed():
     """A baseline measured on another mesh of the same graph name (the plate before the in-plane
     case) is not compared: its rates are of other work."""
-    from benchmarks.engine.enginebench import compare
+    from benchmarks.engine.report import compare
 
     def res(nodes, rate, epoch_s):
         r = {"evals_per_s": rate}

@@ -22,15 +22,25 @@ MODES = ("direct", "checkpoint", "adjoint")
 
 def register(sub):
     p = sub.add_parser("bench", help="measure the cost of the models (default: `bench engine`)",
-                       description="`meshbench bench` (= `meshbench bench engine` with its "
-                       "defaults) or `meshbench bench train`.")
+                       description="`meshbench bench [OPTIONS]` (= `meshbench bench engine "
+                       "[OPTIONS]`) or `meshbench bench train`.")
+    _engine_arguments(p)
+    p.set_defaults(func=run_engine)
     bsub = p.add_subparsers(dest="what", required=False, metavar="WHAT")
-    p.set_defaults(func=lambda args: run_engine(bsub.choices["engine"].parse_args([])))
     from benchmarks.engine import enginebench
 
     e = bsub.add_parser("engine", help="vector field, training step, paper epoch and surrogate "
                         "vs solver, per graph and regime", description=enginebench.__doc__,
                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    _engine_arguments(e)
+    e.set_defaults(func=run_engine)
+    _train_arguments(bsub)
+
+
+def _engine_arguments(e) -> None:
+    """The options of ``bench engine`` (also taken by ``bench`` itself)."""
+    from benchmarks.engine import enginebench
+
     e.add_argument("--graphs", default=",".join(enginebench.GRAPHS),
                    help="comma-separated, of " + ", ".join(enginebench.GRAPHS))
     e.add_argument("--regimes", default=",".join(enginebench.REGIMES),
@@ -42,6 +52,11 @@ def register(sub):
                    "stand-in for the authors' code: their architecture, torchdiffeq rk4, direct "
                    "backprop; per-graph regimes only)")
     e.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    e.add_argument("--device", default="auto",
+                   help="auto (CUDA if present, default), cpu, cuda or cuda:K (docs/GPU.md)")
+    e.add_argument("--epoch-cases", default=",".join(enginebench.PAPER_CASES),
+                   help="cases of the paper-epoch estimate, comma-separated, of "
+                   + ", ".join(enginebench.PAPER_CASES))
     e.add_argument("--rounds", type=int, default=5, help="interleaved rounds per regime")
     e.add_argument("--budget", type=float, default=0.3, help="seconds per round and impl")
     e.add_argument("--train-intervals", type=int, default=20,
@@ -61,7 +76,9 @@ def register(sub):
                    help="print the table of a saved result instead of measuring")
     e.add_argument("--compare-impl", default=None,
                    help="implementation of BASELINE.json to compare with (default its first)")
-    e.set_defaults(func=run_engine)
+
+
+def _train_arguments(bsub) -> None:
     t = bsub.add_parser("train", help="time and memory of one training epoch per gradient mode",
                         description=__doc__)
     t.add_argument("--case", default="rod_falling")
@@ -90,6 +107,9 @@ def run(args):
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if args.frames < 2 or args.max_batches < 0:
         raise ValueError("--frames must be >= 2 and --max-batches >= 0")
+    from benchmarks.suite.runs import pick_device
+
+    pick_device(args.device)  # a bad --device fails before the first child starts
     params = {k: getattr(args, k) for k in ("case", "trajectories", "frames", "hidden",
                                             "integrator", "batch_size", "max_batches",
                                             "threads", "device", "data_dir")}
@@ -113,6 +133,7 @@ def run(args):
 
 def run_engine(args):
     from benchmarks.engine import enginebench as eb
+    from benchmarks.engine import report as rp
 
     def split(text, valid, what):
         items = [x.strip() for x in text.split(",") if x.strip()]
@@ -124,28 +145,34 @@ def run_engine(args):
     graphs = split(args.graphs, eb.GRAPHS, "graphs")
     regimes = split(args.regimes, eb.REGIMES, "regimes")
     impls = split(args.impl, ("current", "reference", "handwritten", "fast", eb.AUTHORS), "impl")
+    epoch_cases = split(args.epoch_cases, eb.PAPER_CASES, "epoch-cases")
     for name in ("threads", "rounds", "train_intervals", "epoch_steps", "solver_trajectories"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got "
                              f"{getattr(args, name)}")
     if not args.budget > 0:
         raise ValueError(f"--budget must be > 0, got {args.budget}")
-    base = eb.load_json(args.compare) if args.compare else None
+    base = rp.load_json(args.compare) if args.compare else None
     if args.report:
-        res = eb.load_json(args.report)
-        for line in eb.report(res):
+        res = rp.load_json(args.report)
+        for line in rp.report(res):
             print(line)
         if base is not None:
             print(f"ratios against {args.compare} (best round):")
-            for line in eb.compare(res, base, args.compare_impl):
+            for line in rp.compare(res, base, args.compare_impl):
                 print("  " + line)
         return 0
+    from benchmarks.suite.runs import pick_device
+
+    dev = pick_device(args.device)
+    if dev.type != "cpu" and eb.AUTHORS in impls:
+        raise ValueError(f"--impl {eb.AUTHORS} runs on the CPU only; use --device cpu for it")
     res = eb.run_bench(graphs, regimes, impls, threads=args.threads, rounds=args.rounds,
                        budget_s=args.budget, train_intervals=args.train_intervals,
                        epoch_steps=args.epoch_steps, memory=not args.no_memory,
                        epochs=not args.no_epoch, solver=not args.no_solver,
                        solver_trajectories=args.solver_trajectories, mgn=not args.no_mgn,
-                       log=lambda m: print(m, flush=True))
+                       log=lambda m: print(m, flush=True), device=dev, epoch_cases=epoch_cases)
     print("(shared machine: compare implementations measured in the same run)")
     if args.json:
         from groundtruth.store import save_json
@@ -153,7 +180,7 @@ def run_engine(args):
         save_json(args.json, res)
     if base is not None:
         print(f"ratios against {args.compare}:")
-        for line in eb.compare(res, base, args.compare_impl):
+        for line in rp.compare(res, base, args.compare_impl):
             print("  " + line)
     return 0
 

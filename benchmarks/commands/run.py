@@ -61,6 +61,9 @@ def run(args):
                 print(f"    {r.run_id}")
         return 0
     suite = get_suite(args.suite)
+    from benchmarks.suite.runs import pick_device
+
+    pick_device(args.device)  # a bad --device fails here, not in every worker
     if args.compare_with is not None:
         base = Path(args.compare_with) / suite.name / "rmse_at_step.csv"
         if Path(args.results).resolve() == Path(args.compare_with).resolve():

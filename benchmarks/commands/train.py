@@ -48,8 +48,10 @@ def _init_distributed(args):
     if "RANK" not in os.environ or "MASTER_ADDR" not in os.environ:
         raise ValueError("--ddp: not started by torchrun (RANK / MASTER_ADDR are not set); "
                          "use `torchrun --nproc-per-node K -m benchmarks.cli train ...`")
+    from benchmarks.suite.runs import pick_device
+
     device = args.device
-    cuda = device.startswith("cuda") or (device == "auto" and torch.cuda.is_available())
+    cuda = pick_device(device).type == "cuda"
     if cuda:
         local = int(os.environ.get("LOCAL_RANK", "0"))
         torch.cuda.set_device(local)
@@ -61,10 +63,11 @@ def _init_distributed(args):
 def run(args):
     import torch
 
-    from benchmarks.suite.runs import train_run
+    from benchmarks.suite.runs import pick_device, train_run
 
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    pick_device(args.device)  # a bad --device fails before the run directory is created
     torch.set_num_threads(args.threads)
     from benchmarks.suite.procs import DirLock, LockBusy
 

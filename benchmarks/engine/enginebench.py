@@ -37,11 +37,15 @@ authors' code, their architecture trained as they train it, ``benchmarks.engine.
 the per-graph regimes only): they are measured
 in one process, interleaved round by round, so that their ratios are not skewed by the load of
 a shared machine.
+
+``--device`` (default ``cpu``) runs every section but the solver's on that device (``cuda``:
+each timing waits for the GPU's queued work, and the peak memory of the memory and epoch
+processes is also ``torch.cuda.max_memory_allocated``, ``cuda_peak_gb``; the result's
+``device`` says which GPU). ``--epoch-cases`` restricts the paper-epoch estimate.
 """
 
 from __future__ import annotations
 
-import json
 import multiprocessing as mp
 import os
 import platform
@@ -49,6 +53,8 @@ import resource
 import statistics
 import sys
 import time
+
+from benchmarks.engine import device as dv
 
 GRAPHS = {"rod1": ("rod_falling", 1), "rod8": ("rod_falling", 8), "rod71": ("rod_falling", 71),
           "plate": ("plate_cantilever", 1)}
@@ -103,30 +109,30 @@ def bench_arrays(case, n: int, frames: int, data_dir):
                                    "train"), "synthetic (no generated data found)"
 
 
-def mesh_and_data(case_id: str, n_graphs: int, frames: int, dtype=None):
+def mesh_and_data(case_id: str, n_graphs: int, frames: int, dtype=None, device="cpu"):
     """``(Mesh, Trajectories, source)`` of the bench data: ``n_graphs`` trajectories of
-    ``frames`` frames (``source`` says whether generated or synthetic)."""
+    ``frames`` frames on ``device`` (``source`` says whether generated or synthetic)."""
     import torch
 
     from meshodenet.data import Mesh, Trajectories
 
     arrays, source = _arrays(case_id, n_graphs, frames)
-    return (Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays, dtype=dtype or torch.float32),
-            source)
+    data = Trajectories.from_arrays(arrays, dtype=dtype or torch.float32, device=device)
+    return Mesh.from_arrays(arrays), data, source
 
 
 def build(case_id: str, n_graphs: int, frames: int, hidden: int = 128, impl: str = "current",
-          dtype=None):
-    """A paper-size MeshODENet (seeded random weights, statistics from the bench data), the
-    bench trajectories and a field context for ``n_graphs`` of them."""
+          dtype=None, device="cpu"):
+    """A paper-size MeshODENet (seeded random weights, statistics from the bench data) on
+    ``device`` and the bench trajectories there (``n_graphs`` of them)."""
     import torch
 
     from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
 
-    mesh, data, source = mesh_and_data(case_id, n_graphs, frames, dtype)
+    mesh, data, source = mesh_and_data(case_id, n_graphs, frames, dtype, device)
     torch.manual_seed(0)
     model = MeshODENet(mesh, _impl_config(MeshODENetConfig(hidden=hidden), impl), data)
-    return model, data, source
+    return model.to(device), data, source
 
 
 def linear_shapes(model, n_graphs: int) -> list[tuple[int, int, int]]:
@@ -148,41 +154,52 @@ def eval_flops(shapes) -> int:
     return sum(2 * r * i * o for r, i, o in shapes)
 
 
-def matmul_peak(shapes, repeats: int = 200) -> float:
-    """GFLOP/s of ``torch.mm`` over exactly ``shapes`` (best of 3 rounds)."""
+def matmul_peak(shapes, repeats: int = 200, device="cpu") -> float:
+    """GFLOP/s of ``torch.mm`` over exactly ``shapes`` on ``device`` (best of 3 rounds)."""
     import torch
 
-    ops = [(torch.randn(r, i), torch.randn(i, o)) for r, i, o in shapes]
+    device = torch.device(device)
+    ops = [(torch.randn(r, i, device=device), torch.randn(i, o, device=device))
+           for r, i, o in shapes]
     flops = eval_flops(shapes) * repeats
     best = float("inf")
     for _ in range(3):
+        dv.sync(device)
         t0 = time.perf_counter()
         for _ in range(repeats):
             for a, b in ops:
                 torch.mm(a, b)
+        dv.sync(device)
         best = min(best, time.perf_counter() - t0)
     return flops / best / 1e9
 
 
 class Regime:
-    """One (graph, regime, implementation): ``run(n)`` performs ``n`` units of work and returns
-    the number of vector-field evaluations it stands for."""
+    """One (graph, regime, implementation) on ``device``: ``run(n)`` performs ``n`` units of
+    work (and waits for the device to finish them) and returns the number of vector-field
+    evaluations it stands for."""
 
-    def __init__(self, graph: str, regime: str, impl: str, train_intervals: int):
+    def __init__(self, graph: str, regime: str, impl: str, train_intervals: int,
+                 device="cpu"):
         import torch
 
         case_id, n = GRAPHS[graph]
         frames = train_intervals + 1
         self.regime, self.n = regime, n
+        self.device = torch.device(device)
         self.authors = None
         if impl == AUTHORS:  # the authors' architecture on the same graph and trajectories
             from benchmarks.engine.authors_style import AuthorsStyle
 
+            if self.device.type != "cpu":
+                raise ValueError(f"--impl {AUTHORS} runs on the CPU only, not on --device "
+                                 f"{device}")
             mesh, data, self.source = mesh_and_data(case_id, n, frames)
             self.authors = AuthorsStyle(mesh, data, n, regime, train_intervals)
             self.evals = self.authors.evals
             return
-        self.model, self.data, self.source = build(case_id, n, frames, impl=impl)
+        self.model, self.data, self.source = build(case_id, n, frames, impl=impl,
+                                                   device=self.device)
         m = self.model
         if regime == "train":
             self.model.train()
@@ -200,10 +217,15 @@ class Regime:
         self.evals = 1
 
     def run(self, reps: int) -> int:
-        import torch
-
         if self.authors is not None:
             return self.authors.run(reps)
+        n = self._run(reps)
+        dv.sync(self.device)
+        return n
+
+    def _run(self, reps: int) -> int:
+        import torch
+
         m = self.model
         if self.regime == "nograd":
             with torch.no_grad():
@@ -241,21 +263,24 @@ def peak_gb() -> float:
 
 
 def _memory_child(graph: str, regime: str, impl: str, train_intervals: int,
-                  threads: int) -> dict:
-    """Fresh process: peak RSS of one regime (three repetitions) above the RSS after setup."""
+                  threads: int, device="cpu") -> dict:
+    """Fresh process: peak RSS of one regime (three repetitions) above the RSS after setup;
+    on a GPU also the peak GPU memory of the three (``cuda_peak_gb``)."""
     import torch
 
     torch.set_num_threads(threads)
-    r = Regime(graph, regime, impl, train_intervals)
+    r = Regime(graph, regime, impl, train_intervals, device)
     base = rss_gb()
+    dv.reset_peak(r.device)
     r.run(3)
     peak = peak_gb()
-    return {"peak_rss_gb": peak, "setup_rss_gb": base, "peak_above_setup_gb": max(peak - base, 0)}
+    return {"peak_rss_gb": peak, "setup_rss_gb": base, "peak_above_setup_gb": max(peak - base, 0),
+            "cuda_peak_gb": dv.cuda_peak_gb(r.device)}
 
 
-def _epoch_child(case_id: str, impl: str, steps: int, threads: int) -> dict:
-    """Fresh process: ``steps`` paper-setting optimizer steps (whole trajectories, batch 1),
-    extrapolated to an epoch of the case's training split."""
+def _epoch_child(case_id: str, impl: str, steps: int, threads: int, device="cpu") -> dict:
+    """Fresh process: ``steps`` paper-setting optimizer steps (whole trajectories, batch 1)
+    on ``device``, extrapolated to an epoch of the case's training split."""
     import torch
 
     from benchmarks.suite.registry import get_case
@@ -263,22 +288,26 @@ def _epoch_child(case_id: str, impl: str, steps: int, threads: int) -> dict:
 
     torch.set_num_threads(threads)
     case = get_case(case_id)
-    model, data, source = build(case_id, case.n_train, case.n_frames, impl=impl)
+    model, data, source = build(case_id, case.n_train, case.n_frames, impl=impl, device=device)
     cfg = TrainConfig(batch_size=1, epochs=1, lr_milestones=())
     opt, _ = make_optimizer(model, cfg)
     n_val = max(1, round(0.1 * case.n_train)) if case.n_train >= 2 else 0
     steps_per_epoch = case.n_train - n_val
     train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(0), max_batches=1)  # warm
     base = rss_gb()
+    dev = model.device
+    dv.sync(dev)
+    dv.reset_peak(dev)
     t0 = time.perf_counter()
     train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(1), max_batches=steps)
+    dv.sync(dev)
     wall = time.perf_counter() - t0
     peak = peak_gb()
     return {"case": case_id, "impl": impl, "steps_timed": steps,
             "steps_per_epoch": steps_per_epoch, "step_s": wall / steps,
             "epoch_s": wall / steps * steps_per_epoch, "peak_rss_gb": peak,
-            "setup_rss_gb": base, "intervals": case.n_frames - 1, "nodes": model.mesh.n_nodes,
-            "data": source}
+            "setup_rss_gb": base, "cuda_peak_gb": dv.cuda_peak_gb(dev), "device": str(dev),
+            "intervals": case.n_frames - 1, "nodes": model.mesh.n_nodes, "data": source}
 
 
 def _solver_child(case_id: str, n: int) -> dict:
@@ -296,27 +325,30 @@ def _solver_child(case_id: str, n: int) -> dict:
             "youngs": [float(y) for y in ys]}
 
 
-def _surrogate(case_id: str, impl: str, n_batch: int, repeats: int) -> dict:
-    """Rollout time per trajectory of the paper-size model from the case's initial state at its
-    first ``n_batch`` test moduli: one at a time and all together (best of ``repeats``)."""
+def _surrogate(case_id: str, impl: str, n_batch: int, repeats: int, device="cpu") -> dict:
+    """Rollout time per trajectory of the paper-size model (on ``device``) from the case's
+    initial state at its first ``n_batch`` test moduli: one at a time and all together (best
+    of ``repeats``)."""
     import numpy as np
     import torch
 
     from benchmarks.suite.registry import get_case
 
     case = get_case(case_id)
-    model, _, _ = build(case_id, 1, 3, impl=impl)
+    model, _, _ = build(case_id, 1, 3, impl=impl, device=device)
     model.eval()
     q0, v0 = case.initial_state()
-    ys = torch.as_tensor(case.sample_youngs("test")[:n_batch], dtype=torch.float32)
-    t = torch.as_tensor(case.t_save(), dtype=torch.float32)
-    x0 = torch.as_tensor(np.asarray(q0).reshape(-1, 3), dtype=torch.float32)
-    v0 = torch.as_tensor(np.asarray(v0).reshape(-1, 3), dtype=torch.float32)
+    dev = model.device
+    tensor = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=dev)
+    ys = tensor(case.sample_youngs("test")[:n_batch])
+    t = tensor(case.t_save())
+    x0, v0 = tensor(q0).reshape(-1, 3), tensor(v0).reshape(-1, 3)
     n = len(ys)
 
     def once(b):
         with torch.no_grad():
             model.rollout(x0.expand(b, -1, -1), v0.expand(b, -1, -1), ys[:b], t)
+        dv.sync(dev)
 
     best1 = bestb = float("inf")
     for r in range(repeats):
@@ -339,24 +371,29 @@ def _spawn(fn, *args):
 
 def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, train_intervals=20,
               epoch_steps=2, memory=True, epochs=True, solver=True, solver_trajectories=2,
-              mgn=True, log=print) -> dict:
+              mgn=True, log=print, device="cpu", epoch_cases=PAPER_CASES) -> dict:
+    """Every section of the module docstring on ``device``; the result as a JSON-able dict."""
     import torch
 
     torch.set_num_threads(threads)
+    dev = torch.device(device)
+    device = str(dev)
     out = {"machine": {"platform": platform.platform(), "processor": platform.processor(),
                        "cpus": os.cpu_count(), "python": sys.version.split()[0],
                        "torch": torch.__version__, "threads": threads},
+           "device": dv.describe(dev),
            "settings": {"graphs": list(graphs), "regimes": list(regimes), "impls": list(impls),
                         "rounds": rounds, "budget_s": budget_s,
                         "train_intervals": train_intervals, "epoch_steps": epoch_steps,
-                        "solver_trajectories": solver_trajectories},
+                        "epoch_cases": list(epoch_cases),
+                        "solver_trajectories": solver_trajectories, "device": device},
            "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
            "graphs": {}, "epochs": {}, "surrogate": {}}
     for g in graphs:
         probe = build(GRAPHS[g][0], GRAPHS[g][1], 3)[0]
         shapes = linear_shapes(probe, GRAPHS[g][1])
         fl = eval_flops(shapes)
-        peak = matmul_peak(shapes)
+        peak = matmul_peak(shapes, device=dev)
         entry = {"nodes": probe.mesh.n_nodes * GRAPHS[g][1],
                  "directed_edges": 2 * len(probe.mesh.edges) * GRAPHS[g][1],
                  "forward_mflop_per_eval": fl / 1e6, "matmul_peak_gflops": peak,
@@ -365,7 +402,7 @@ def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, trai
             f"{fl / 1e6:.2f} MFLOP per forward evaluation; matmul peak on these shapes "
             f"{peak:.1f} GFLOP/s")
         for reg in regimes:
-            objs = {i: Regime(g, reg, i, train_intervals) for i in impls}
+            objs = {i: Regime(g, reg, i, train_intervals, dev) for i in impls}
             mult = 1 if reg == "nograd" else 3
             reps = {}
             for i, o in objs.items():  # warm-up and calibration: ~budget_s per measurement
@@ -387,8 +424,10 @@ def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, trai
                           "gflops": eps * fl * mult / 1e9,
                           "fraction_of_peak": eps * fl * mult / 1e9 / peak}
                 if memory:
-                    res[i].update(_spawn(_memory_child, g, reg, i, train_intervals, threads))
+                    res[i].update(_spawn(_memory_child, g, reg, i, train_intervals, threads,
+                                         device))
                 mem = f", peak +{res[i]['peak_above_setup_gb'] * 1024:.0f} MB" if memory else ""
+                mem += gpu_peak(res[i])
                 log(f"  {reg:7s} {i:9s} {eps:10.0f} evals/s  {res[i]['gflops']:6.2f} GFLOP/s "
                     f"({100 * res[i]['fraction_of_peak']:.1f}% of matmul peak){mem}")
             entry["regimes"][reg] = res
@@ -396,21 +435,21 @@ def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, trai
         out["graphs"][g] = entry
     ours = [i for i in impls if i != AUTHORS]
     if epochs and ours:
-        for c in PAPER_CASES:
+        for c in epoch_cases:
             out["epochs"][c] = {}
             for i in ours:
-                r = _spawn(_epoch_child, c, i, epoch_steps, threads)
+                r = _spawn(_epoch_child, c, i, epoch_steps, threads, device)
                 out["epochs"][c][i] = r
                 log(f"paper epoch {c} [{i}]: {r['epoch_s']:.1f} s (estimated from "
                     f"{r['steps_timed']} of {r['steps_per_epoch']} optimizer steps, "
                     f"{r['step_s']:.2f} s each, validation excluded); peak RSS "
-                    f"{r['peak_rss_gb']:.2f} GB")
+                    f"{r['peak_rss_gb']:.2f} GB{gpu_peak(r)}")
     if solver and ours:
         for c in PAPER_CASES:
             s = _spawn(_solver_child, c, solver_trajectories)
             out["surrogate"][c] = {"solver": s}
             for i in ours:
-                r = _surrogate(c, i, len(_case_test_youngs(c)), 2)
+                r = _surrogate(c, i, len(_case_test_youngs(c)), 2, dev)
                 r["speedup_single"] = s["per_trajectory_s"] / r["single_s"]
                 r["speedup_batched"] = s["per_trajectory_s"] / r["batched_per_trajectory_s"]
                 out["surrogate"][c][i] = r
@@ -419,14 +458,15 @@ def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, trai
                     f"({r['speedup_single']:.1f}x), {r['batched_per_trajectory_s']:.4f} s per "
                     f"trajectory batched by {r['batch']} ({r['speedup_batched']:.1f}x)")
     if mgn and ours:
-        out["mgn"] = {c: mgn_bench(c, ours, log=log) for c in PAPER_CASES}
+        out["mgn"] = {c: mgn_bench(c, ours, log=log, device=dev) for c in PAPER_CASES}
     out["finished"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     return out
 
 
-def mgn_bench(case_id: str, impls, rounds: int = 3, log=print) -> dict:
-    """MeshGraphNet at its ``quick`` preset: one optimizer-step's loss and backward on a batch of
-    frames, and a no-grad rollout of one whole trajectory, per implementation, interleaved."""
+def mgn_bench(case_id: str, impls, rounds: int = 3, log=print, device="cpu") -> dict:
+    """MeshGraphNet at its ``quick`` preset on ``device``: one optimizer-step's loss and
+    backward on a batch of frames, and a no-grad rollout of one whole trajectory, per
+    implementation, interleaved."""
     import torch
 
     from benchmarks.suite.registry import get_case
@@ -434,24 +474,27 @@ def mgn_bench(case_id: str, impls, rounds: int = 3, log=print) -> dict:
     from meshodenet.models.mgn import MeshGraphNet, mgn_presets
 
     case = get_case(case_id)
+    dev = torch.device(device)
     arrays, _ = _arrays(case_id, 2, case.n_frames)
-    data = Trajectories.from_arrays(arrays)
+    data = Trajectories.from_arrays(arrays, device=dev)
     mesh = Mesh.from_arrays(arrays)
     tcfg, mcfg = mgn_presets("quick", mesh.kind)
     models = {}
     for i in impls:
         torch.manual_seed(0)
-        models[i] = MeshGraphNet(mesh, _impl_config(mcfg, i), data)
+        models[i] = MeshGraphNet(mesh, _impl_config(mcfg, i), data).to(dev)
     samples = torch.randperm(models[impls[0]].n_training_samples(data),
                              generator=torch.Generator().manual_seed(0))[:tcfg.batch_size]
 
     def step(m):
         m.zero_grad(set_to_none=True)
         m.training_loss(data, samples).backward()
+        dv.sync(dev)
 
     def roll(m):
         with torch.no_grad():
             m.rollout(data.pos[:1, 0], data.vel[:1, 0], data.youngs[:1], data.t)
+        dv.sync(dev)
 
     times = {i: {"step": [], "rollout": []} for i in impls}
     for m in models.values():
@@ -480,122 +523,7 @@ def _case_test_youngs(case_id):
     return get_case(case_id).sample_youngs("test")
 
 
-def compare(new: dict, base: dict, base_impl: str | None = None) -> list[str]:
-    """Lines of ratios ``new / base`` (higher is better for rates, lower for times)."""
-    lines = []
-    changed = set()  # cases whose mesh differs from the baseline's: nothing of theirs compared
-
-    def pick(d, prefer):
-        if prefer and prefer in d:
-            return d[prefer]
-        return next(iter(d.values()))
-
-    for g, e in new.get("graphs", {}).items():
-        b = base.get("graphs", {}).get(g)
-        if not b:
-            continue
-        if (b.get("nodes"), b.get("directed_edges")) != (e.get("nodes"), e.get("directed_edges")):
-            lines.append(f"{g:6s} not compared: the baseline's graph has {b.get('nodes')} nodes, "
-                         f"{b.get('directed_edges')} directed edges, this run's {e.get('nodes')}, "
-                         f"{e.get('directed_edges')} (the case changed)")
-            continue
-        for reg, res in e["regimes"].items():
-            br = b["regimes"].get(reg)
-            if not br:
-                continue
-            bv = _rate(pick(br, base_impl))
-            for i, r in res.items():
-                lines.append(f"{g:6s} {reg:7s} {i:9s} evals/s {_rate(r):10.0f} vs "
-                             f"{bv:10.0f}: x{_rate(r) / bv:.2f}")
-    for c, e in new.get("epochs", {}).items():
-        b = base.get("epochs", {}).get(c)
-        if not b:
-            continue
-        bn, nn = pick(b, base_impl).get("nodes"), next(iter(e.values())).get("nodes")
-        if bn != nn:
-            changed.add(c)
-            lines.append(f"{c}: not compared (paper epoch, surrogate, MGN): the baseline's "
-                         f"mesh has {bn} nodes, this run's {nn} (the case changed)")
-            continue
-        bv = pick(b, base_impl)["epoch_s"]
-        for i, r in e.items():
-            lines.append(f"paper epoch {c} {i}: {r['epoch_s']:.1f} s vs {bv:.1f} s: "
-                         f"x{bv / r['epoch_s']:.2f} faster")
-    for c, e in new.get("surrogate", {}).items():
-        b = base.get("surrogate", {}).get(c)
-        if not b or c in changed:
-            continue
-        bi = {k: v for k, v in b.items() if k != "solver"}
-        bv = pick(bi, base_impl)
-        for i, r in e.items():
-            if i == "solver":
-                continue
-            lines.append(f"surrogate {c} {i}: single {r['single_s']:.3f} s vs "
-                         f"{bv['single_s']:.3f} s (x{bv['single_s'] / r['single_s']:.2f}), "
-                         f"batched {r['batched_per_trajectory_s']:.4f} vs "
-                         f"{bv['batched_per_trajectory_s']:.4f} s/trajectory "
-                         f"(x{bv['batched_per_trajectory_s'] / r['batched_per_trajectory_s']:.2f})")
-    for c, e in new.get("mgn", {}).items():
-        b = base.get("mgn", {}).get(c)
-        if not b or c in changed:
-            continue
-        bv = pick({k: v for k, v in b.items() if isinstance(v, dict)}, base_impl)
-        for i, r in e.items():
-            if isinstance(r, dict):
-                lines.append(f"mgn {c} {i}: step x{bv['step_s'] / r['step_s']:.2f} faster, "
-                             f"rollout x{bv['rollout_s'] / r['rollout_s']:.2f} faster")
-    return lines
-
-
-def _rate(r: dict) -> float:
-    """Evaluations per second of the best of the interleaved rounds."""
-    return r.get("evals_per_s_best", r["evals_per_s"])
-
-
-def report(res: dict) -> list[str]:
-    """The table of a ``run_bench`` result (also of a saved JSON), rates of the best round, and
-    the ratio of every implementation to the first one listed."""
-    lines = []
-    impls = res["settings"]["impls"]
-    for g in sorted(res["graphs"], key=lambda k: list(GRAPHS).index(k) if k in GRAPHS else 99):
-        e = res["graphs"][g]
-        lines.append(f"{g}: {e['nodes']} nodes, {e['directed_edges']} directed edges, "
-                     f"{e['forward_mflop_per_eval']:.2f} MFLOP per forward evaluation; matmul "
-                     f"peak on these shapes {e['matmul_peak_gflops']:.1f} GFLOP/s")
-        for reg in sorted(e["regimes"], key=lambda k: REGIMES.index(k) if k in REGIMES else 9):
-            rr = e["regimes"][reg]
-            mult = 1 if reg == "nograd" else 3
-            base = _rate(rr[impls[0]])
-            for i, r in rr.items():
-                gf = _rate(r) * e["forward_mflop_per_eval"] * mult / 1e3
-                mem = f", peak +{r['peak_above_setup_gb'] * 1024:.0f} MB" \
-                    if "peak_above_setup_gb" in r else ""
-                ratio = f"  x{_rate(r) / base:.2f}" if i != impls[0] else ""
-                lines.append(f"  {reg:7s} {i:9s} {_rate(r):8.0f} evals/s {gf:6.2f} GFLOP/s "
-                             f"({100 * gf / e['matmul_peak_gflops']:.1f}% of peak){mem}{ratio}")
-    for c, e in res.get("epochs", {}).items():
-        for i, r in e.items():
-            lines.append(f"paper epoch {c} [{i}]: {r['epoch_s']:.1f} s ({r['step_s']:.2f} s per "
-                         f"step x {r['steps_per_epoch']} steps, from {r['steps_timed']} timed, "
-                         f"validation excluded); peak RSS {r['peak_rss_gb']:.2f} GB")
-    for c, e in res.get("surrogate", {}).items():
-        s = e["solver"]
-        for i, r in e.items():
-            if i != "solver":
-                lines.append(f"surrogate {c} [{i}]: solver {s['per_trajectory_s']:.2f} s per "
-                             f"trajectory; rollout alone {r['single_s']:.3f} s "
-                             f"(x{r['speedup_single']:.1f}), batched by {r['batch']} "
-                             f"{r['batched_per_trajectory_s']:.4f} s per trajectory "
-                             f"(x{r['speedup_batched']:.1f})")
-    for c, e in res.get("mgn", {}).items():
-        for i in impls:
-            if i in e:
-                lines.append(f"mgn {c} [{i}]: step {e[i]['step_s'] * 1e3:.0f} ms "
-                             f"({e['batch_frames']} frames), rollout {e[i]['rollout_s']:.2f} s "
-                             f"({e['rollout_frames']} frames)")
-    return lines
-
-
-def load_json(path) -> dict:
-    with open(path) as f:
-        return json.load(f)
+def gpu_peak(r: dict) -> str:
+    """``", GPU peak X GB"`` for an entry measured on a GPU, else ``""``."""
+    peak = r.get("cuda_peak_gb")
+    return f", GPU peak {peak:.2f} GB" if peak is not None else ""

@@ -35,22 +35,36 @@ REPRO_ENV = {
     "ONEDNN_MAX_CPU_ISA": "AVX2",    # oneDNN (convolutions, some linear layers)
     "OPENBLAS_CORETYPE": "Haswell",  # OpenBLAS (numpy / scipy, the ground-truth solvers)
 }
+#: The pins of torch's CPU kernels: skipped for a command run with ``--device cuda`` (its
+#: model runs on the GPU, whose kernels they do not select). OpenBLAS's pin stays: numpy and
+#: scipy (the ground-truth solvers) run on the CPU whatever the device.
+TORCH_PINS = ("ATEN_CPU_CAPABILITY", "MKL_CBWR", "ONEDNN_MAX_CPU_ISA")
 PR_SET_PDEATHSIG = 1
 
 
-def repro_env() -> dict:
+def runs_on_cuda(device) -> bool:
+    """Whether ``--device device`` names a CUDA device. ``auto`` does not: whether it picks
+    one is known only once torch has loaded, after the pins must be set (on a GPU the torch
+    pins are then set but select nothing the model runs)."""
+    return str(device).startswith("cuda")
+
+
+def repro_env(device=None) -> dict:
     """The pinned settings, or ``{}`` where they do not apply (not x86-64, or
-    ``MESHBENCH_NO_PIN=1``). Values already in the environment win."""
+    ``MESHBENCH_NO_PIN=1``); without ``TORCH_PINS`` when ``runs_on_cuda(device)``. Values
+    already in the environment win."""
     import platform
 
     if os.environ.get("MESHBENCH_NO_PIN") == "1" or platform.machine() not in ("x86_64", "AMD64"):
         return {}
-    return {k: os.environ.get(k, v) for k, v in REPRO_ENV.items()}
+    skip = TORCH_PINS if runs_on_cuda(device) else ()
+    return {k: os.environ.get(k, v) for k, v in REPRO_ENV.items() if k not in skip}
 
 
-def apply_repro_env() -> dict:
-    """Put the pinned settings into ``os.environ`` (for processes started afterwards)."""
-    env = repro_env()
+def apply_repro_env(device=None) -> dict:
+    """Put the pinned settings (``repro_env(device)``) into ``os.environ`` (for processes
+    started afterwards, and for torch and numpy when they have not loaded yet)."""
+    env = repro_env(device)
     os.environ.update(env)
     return env
 

@@ -357,7 +357,7 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
 
     records: dict = {}
     failures: dict = {}
-    procs.apply_repro_env()  # inherited by the spawned workers (see procs.REPRO_ENV)
+    procs.apply_repro_env(device)  # inherited by the spawned workers (see procs.REPRO_ENV)
     by_id = {r.run_id: r for r in runs}
     if executor == "dask":  # workers may start elsewhere: absolute paths on the shared FS
         runs_dir = runs_dir.resolve()

@@ -52,13 +52,38 @@ def trainable(model_id: str) -> bool:
     return spec is None or getattr(spec.model_cls, "trainable", True)
 
 
+#: What ``--device`` accepts (``cuda:K`` names one GPU of several).
+DEVICES = ("auto", "cpu", "cuda", "cuda:K")
+
+
+def check_device_name(name: str) -> str:
+    """``name`` if it is one of ``DEVICES`` (without importing torch), else a one-line
+    ``ValueError``."""
+    kind, sep, index = str(name).partition(":")
+    ok = name == "auto" or (kind in ("cpu", "cuda") and not sep) or (kind == "cuda" and
+                                                                     index.isdigit())
+    if not ok:
+        raise ValueError(f"--device {name!r} is not a device; valid: {', '.join(DEVICES)}")
+    return name
+
+
 def pick_device(name: str = "auto"):
+    """The ``torch.device`` of ``--device name``: ``auto`` is the first CUDA device when torch
+    sees one, else the CPU; ``cpu``; ``cuda`` or ``cuda:K``. ``ValueError`` (one line) for
+    another name, or for CUDA where torch sees no such device."""
     import torch
 
+    name = check_device_name(str(name))
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"--device {name!r} but CUDA is not available; use --device cpu")
+    kind, _, index = name.partition(":")
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {name!r} but torch sees no CUDA device (torch "
+                         f"{torch.__version__}, CUDA build {torch.version.cuda or 'none'}); "
+                         "use --device cpu, or install a CUDA build of torch (docs/GPU.md)")
+    if index and int(index) >= torch.cuda.device_count():
+        raise ValueError(f"--device {name!r} but torch sees {torch.cuda.device_count()} CUDA "
+                         f"device(s) (cuda:0 to cuda:{torch.cuda.device_count() - 1})")
     return torch.device(name)
 
 

@@ -120,9 +120,10 @@ class MeshODENetIMEX(MeshODENet):
     @torch.no_grad()
     def _output_stats(self, train: Trajectories) -> None:
         """Normalise the decoder's output by its target ``v_{k+1} + (v_{k+1} - v_k) / (h gamma)``."""
-        free = torch.as_tensor(self.mesh.node_type == 0)
+        free = torch.as_tensor(self.mesh.node_type == 0, device=train.vel.device)
         h = (train.t[1:] - train.t[:-1])[:, None, None]
-        g = self.gamma.to(train.vel.dtype)[None, :, None]
+        # the model is still on the CPU here; the training data may be on a GPU
+        g = self.gamma.to(train.vel.device, train.vel.dtype)[None, :, None]
         mom = _Moments()
         for b in range(len(train)):
             v = train.vel[b][:, free]

@@ -351,7 +351,8 @@ class MeshODENet(TrajectoryModel):
         else:
             s_d = self._frame_scales(data, S).clamp_min(1e-30)  # a frame that never moves
             w = s_d.pow(-p)
-            loss = (sq.mean(dim=(0, 2)) * w.to(sq.dtype)).mean() / float((s_d * w).mean())
+            loss = (sq.mean(dim=(0, 2)) * w.to(sq.device, sq.dtype)).mean() \
+                / float((s_d * w).mean())
         lam = self.config.release_weight
         if lam:
             loss = loss + lam * self._release_loss(data, traj)
