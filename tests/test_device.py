@@ -13,7 +13,7 @@ import torch
 from tests.conftest import rod_arrays, strip_arrays
 from tests.fakecuda import DeviceMismatch, FakeCuda, label, label_cpu
 
-MODELS = ("meshodenet", "mgn", "meshodenet_imex", "mgn_unrolled")
+MODELS = ("meshodenet", "mgn", "meshodenet_imex", "mgn_unrolled", "implicit_energy")
 
 
 # --- the emulation itself -------------------------------------------------------------------

@@ -107,7 +107,8 @@ class ImplicitEnergy(TrajectoryModel):
         self.length = float(np.linalg.norm(mesh.rest_pos[edges[:, 1]]
                                            - mesh.rest_pos[edges[:, 0]], axis=1).mean())
         self.planar = bool(np.ptp(mesh.rest_pos[:, 2]) == 0 and not np.any(mesh.force[:, 2]))
-        if train is not None:
+        if train is not None:  # on the buffers' device (the model is moved after it is built)
+            train = train.to(device=self.ystats.device)
             self._statistics(train)
             self._fit_log_stiffness(train)
 
