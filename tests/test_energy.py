@@ -263,3 +263,16 @@ def test_window_training_runs_exact_steps():
     loss.backward()
     assert torch.isfinite(loss) and loss > 0
     assert all(torch.isfinite(p.grad).all() for p in model.parameters())
+
+
+def test_bench_section_times_the_model_against_the_solver(tiny_case, tmp_path):
+    from benchmarks.engine.energybench import energy_bench, energy_line
+
+    case, root = tiny_case
+    lines = []
+    r = energy_bench(case.id, 1, "cpu", lines.append, root)
+    for key in ("train_step_s", "single_per_trajectory_s", "batched_per_trajectory_s",
+                "solver_h_per_trajectory_s", "solver_per_trajectory_s"):
+        assert r[key] > 0, key
+    assert r["intervals"] == round(case.t_end / case.save_dt) and lines == [energy_line(case.id, r)]
+    assert "skipped" in energy_bench(case.id, 1, "cpu", lines.append, tmp_path)

@@ -69,6 +69,8 @@ def _engine_arguments(e) -> None:
     e.add_argument("--no-epoch", action="store_true", help="skip the paper-epoch estimate")
     e.add_argument("--no-solver", action="store_true", help="skip surrogate vs solver")
     e.add_argument("--no-mgn", action="store_true", help="skip MeshGraphNet")
+    e.add_argument("--no-energy", action="store_true",
+                   help="skip Implicit-Energy's cost against the solver")
     e.add_argument("--json", default=None, help="write the results to this JSON file")
     e.add_argument("--compare", default=None, metavar="BASELINE.json",
                    help="print ratios against a JSON written by --json")
@@ -172,6 +174,7 @@ def run_engine(args):
                        epoch_steps=args.epoch_steps, memory=not args.no_memory,
                        epochs=not args.no_epoch, solver=not args.no_solver,
                        solver_trajectories=args.solver_trajectories, mgn=not args.no_mgn,
+                       energy=not args.no_energy,
                        log=lambda m: print(m, flush=True), device=dev, epoch_cases=epoch_cases)
     print("(shared machine: compare implementations measured in the same run)")
     if args.json:

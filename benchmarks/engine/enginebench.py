@@ -371,7 +371,7 @@ def _spawn(fn, *args):
 
 def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, train_intervals=20,
               epoch_steps=2, memory=True, epochs=True, solver=True, solver_trajectories=2,
-              mgn=True, log=print, device="cpu", epoch_cases=PAPER_CASES) -> dict:
+              mgn=True, log=print, device="cpu", epoch_cases=PAPER_CASES, energy=True) -> dict:
     """Every section of the module docstring on ``device``; the result as a JSON-able dict."""
     import torch
 
@@ -459,6 +459,10 @@ def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, trai
                     f"trajectory batched by {r['batch']} ({r['speedup_batched']:.1f}x)")
     if mgn and ours:
         out["mgn"] = {c: mgn_bench(c, ours, log=log, device=dev) for c in PAPER_CASES}
+    if energy:
+        from benchmarks.engine.energybench import energy_bench
+
+        out["energy"] = {c: energy_bench(c, solver_trajectories, dev, log) for c in PAPER_CASES}
     out["finished"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     return out
 

@@ -121,6 +121,10 @@ def report(res: dict) -> list[str]:
                              f"(x{r['speedup_single']:.1f}), batched by {r['batch']} "
                              f"{r['batched_per_trajectory_s']:.4f} s per trajectory "
                              f"(x{r['speedup_batched']:.1f})")
+    if res.get("energy"):
+        from benchmarks.engine.energybench import energy_line
+
+        lines += [energy_line(c, r) for c, r in res["energy"].items()]
     for c, e in res.get("mgn", {}).items():
         for i in impls:
             if i in e:
