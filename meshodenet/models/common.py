@@ -10,6 +10,7 @@ rods (line meshes) 400 epochs with the learning rate divided by 10 every 100 epo
 from __future__ import annotations
 
 import math
+from dataclasses import asdict
 
 from meshodenet.train import TrainConfig
 
@@ -42,6 +43,22 @@ def paper_train_config(kind: str) -> TrainConfig:
                          f"{', '.join(PAPER_SCHEDULES)}")
     return TrainConfig(lr=1e-4, weight_decay=5e-4, lr_gamma=0.1, batch_size=1,
                        **PAPER_SCHEDULES[kind])
+
+
+def preset_configs(preset: str, kind: str, quick: dict, config_cls, smoke: dict) -> tuple:
+    """``(TrainConfig, config)`` of the usual presets for a mesh of ``kind``: ``paper`` the
+    paper's optimiser with ``config_cls()``; ``quick`` ``quick[kind] = (TrainConfig fields,
+    config fields)`` over the paper's optimiser; ``smoke`` 2 epochs of 3 steps of 4 samples at
+    lr 1e-3 with ``config_cls(**smoke)``."""
+    check_preset(preset)
+    base = asdict(paper_train_config(kind))
+    if preset == "paper":
+        return TrainConfig(**base), config_cls()
+    if preset == "quick":
+        t, m = quick[kind]
+        return TrainConfig(**{**base, **t}), config_cls(**m)
+    return (TrainConfig(**{**base, "epochs": 2, "lr": 1e-3, "lr_milestones": (),
+                           "batch_size": 4, "max_batches": 3}), config_cls(**smoke))
 
 
 def check_int(obj, name: str, lo: int) -> None:

@@ -46,7 +46,7 @@ from meshodenet.data import Mesh, Trajectories
 from meshodenet.energy import TYPES, ElementEnergy, EnergySystem, measure, static_features
 from meshodenet.implicit import NewtonError
 from meshodenet.interface import TrajectoryModel
-from meshodenet.models.common import check_int, check_nonnegative, check_preset, paper_train_config
+from meshodenet.models.common import check_int, check_nonnegative, preset_configs
 from meshodenet.train import TrainConfig
 
 
@@ -375,16 +375,7 @@ QUICK = {
 def energy_presets(preset: str, kind: str) -> tuple[TrainConfig, EnergyConfig]:
     """``(TrainConfig, EnergyConfig)``: ``paper`` the paper's optimiser and schedule with
     the default model; ``quick`` with ``QUICK``; ``smoke`` a tiny model, 2 epochs of 3 steps."""
-    check_preset(preset)
-    base = paper_train_config(kind)
-    if preset == "paper":
-        return base, EnergyConfig()
-    if preset == "quick":
-        t, m = QUICK[kind]
-        return TrainConfig(**{**base.__dict__, **t}), EnergyConfig(**m)
-    return (TrainConfig(**{**base.__dict__, "epochs": 2, "lr": 1e-3, "lr_milestones": (),
-                           "batch_size": 4, "max_batches": 3}),
-            EnergyConfig(hidden=8, layers=1))
+    return preset_configs(preset, kind, QUICK, EnergyConfig, dict(hidden=8, layers=1))
 
 
 __all__ = ["EnergyConfig", "ImplicitEnergy", "energy_presets"]

@@ -18,7 +18,7 @@ backward does not provide.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 
@@ -44,8 +44,7 @@ from meshodenet.models.common import (
     check_fraction,
     check_int,
     check_nonnegative,
-    check_preset,
-    paper_train_config,
+    preset_configs,
 )
 from meshodenet.network import FastField
 from meshodenet.train import TrainConfig
@@ -177,16 +176,8 @@ def meshodenet_presets(preset: str, kind: str) -> tuple[TrainConfig, MeshODENetC
     step equal to the sampling interval, whole rollouts, ``checkpoint`` gradients) and
     optimiser, one trajectory per step; ``quick`` with ``QUICK``; ``smoke`` a tiny model,
     2 epochs of 3 steps, for tests."""
-    check_preset(preset)
-    base = paper_train_config(kind)
-    if preset == "paper":
-        return base, MeshODENetConfig()
-    if preset == "quick":
-        t, m = QUICK[kind]
-        return TrainConfig(**{**asdict(base), **t}), MeshODENetConfig(**m)
-    return (TrainConfig(**{**asdict(base), "epochs": 2, "lr": 1e-3, "lr_milestones": (),
-                           "batch_size": 4, "max_batches": 3}),
-            MeshODENetConfig(hidden=16, mlp_hidden_layers=1, shooting=5))
+    return preset_configs(preset, kind, QUICK, MeshODENetConfig,
+                          dict(hidden=16, mlp_hidden_layers=1, shooting=5))
 
 
 # --- the model ---------------------------------------------------------------------------------
