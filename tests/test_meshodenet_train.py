@@ -235,7 +235,8 @@ def test_unknown_model_and_preset_are_clear(tiny_case, tmp_path, capsys):
     case, root = tiny_case
     assert _cli("train", "--case", case.id, "--model", "gnn", "--out", tmp_path / "r",
                 "--data-dir", root) == 2
-    assert "valid ids: meshodenet" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "unknown model id 'gnn'; valid ids: " in err and "meshodenet, " in err
     assert _cli("train", "--case", case.id, "--preset", "fast", "--out", tmp_path / "r",
                 "--data-dir", root) == 2
     assert "paper, quick, smoke" in capsys.readouterr().err

@@ -252,7 +252,8 @@ def test_every_registered_suite_resolves():
             if r.integrator:
                 assert model.integrator == r.integrator and model.grad_mode == r.grad_mode
     ids = [r.run_id for r in SUITES["integrators"].runs(seeds=2)]
-    assert "rod_falling-meshodenet-quick-dopri5-direct-s1" in ids and len(ids) == 12
+    assert "rod_falling-meshodenet-quick-dopri5-direct-s1" in ids and len(ids) == 16
+    assert "rod_falling-meshodenet-quick-sdirk2-direct-s1" in ids
     assert [r.run_id for r in SUITES["quick"].runs(only="*-mgn-*")] == [
         "rod_falling-mgn-quick-s0", "plate_cantilever-mgn-quick-s0"]
 
