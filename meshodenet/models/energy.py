@@ -310,7 +310,7 @@ class ImplicitEnergy(TrajectoryModel):
         for k in self.kinds:
             one = EnergySystem(nn.ModuleDict({k: self.terms[k]}), {k: self._elems()[k]},
                                {k: getattr(self, f"{k}_sigma")}, train.youngs[traj],
-                               sys.yrel.new_tensor(float(self.ystats[0])).item(),
+                               float(self.ystats[0]),
                                (float(self.ystats[1]), float(self.ystats[2])))
             lhs.append(one.gradient(x1)[:, free].reshape(-1))
         m, c = self.mass[:, None], self.damping[:, None]
