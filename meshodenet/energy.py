@@ -1,24 +1,26 @@
-r"""A learned elastic energy over a mesh's edges and rod hinges, its forces and Hessians, and the
-backward-Euler step of a mechanical system driven by it (``meshodenet.models.energy``).
+r"""A learned elastic energy over a mesh's edges and rod hinges: its values, forces and Hessians
+(the model that steps it is ``meshodenet.models.energy``).
 
 The energy is a sum of element energies, each a function of one rotation- and
 translation-invariant measure ``q`` of its element's deformation:
 
 - edges ``(i, j)``: the stretch ``q = |x_j - x_i| / l_0 - 1``;
-- rod hinges ``(a, b, c)`` of line meshes: the curvature ``q = |kappa_b - kappa_{b,0}|``,
+- rod hinges ``(a, b, c)`` of line meshes: the squared curvature ``q = |kappa_b - kappa_{b,0}|^2``,
   ``kappa_b = 2 e x f / (|e| |f| + e . f)`` of the edges ``e = x_b - x_a``, ``f = x_c - x_b``
   (``kappa_{b,0}`` of the rest shape; a fixed vector, so invariant under translations and
   rotations about the rest plane's normal, exact for planar rods).
 
 .. math::
-    U_k = \frac{Y}{\bar Y} \, e^{a_t} \, \tfrac12 \hat q_k^2 \, g_t(\hat q_k, s_k, \hat y),
+    U_k = \frac{Y}{\bar Y} \, e^{a_t} \, \tfrac12 \hat q_k^{p_t} \, g_t(\hat q_k, s_k, \hat y),
     \qquad g_t = \operatorname{softplus}(\mathrm{MLP}_t) / \ln 2,
 
-``hat q = q / sigma_t`` (``sigma_t`` the RMS of ``q`` over the training frames), ``s_k`` the
-element's normalised static features (``static_features``), ``hat y`` the normalised logarithm of
-the modulus, ``a_t`` one log-stiffness per element type. The rest shape is stress free and every
-element stiff at rest (``g > 0``). The MLP's last layer starts at zero (``g = 1``) and ``a_t`` at
-a least-squares fit of the training frames' momentum balance (``fit_log_stiffness``).
+``p_t`` 2 for edges and 1 for hinges (``POWER``: quadratic in the stretch and the curvature at
+small strain), ``hat q = q / sigma_t`` (``sigma_t`` the RMS of ``q`` over the training frames),
+``s_k`` the element's normalised static features (``static_features``), ``hat y`` the normalised
+logarithm of the modulus, ``a_t`` one log-stiffness per element type. The rest shape is stress
+free and every element stiff at rest (``g > 0``). The MLP's last layer starts at zero
+(``g = 1``) and ``a_t`` at a least-squares fit of the training frames' momentum balance
+(``ImplicitEnergy._fit_log_stiffness``).
 """
 
 from __future__ import annotations
