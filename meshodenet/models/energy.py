@@ -304,7 +304,6 @@ class ImplicitEnergy(TrajectoryModel):
         T = train.n_frames
         samples = torch.arange(0, len(train) * (T - 1), every)
         traj, xk, vk, x1, h = self._frames(train, samples)
-        sys = self.system(train.youngs[traj])
         free = self.free
         lhs = []
         for k in self.kinds:
