@@ -138,7 +138,8 @@ def _solver(case: str) -> tuple:
 register_suite(Suite(
     "quick", "the paper's two cases, MeshODENet, MGN, MeshODENet-IMEX and Implicit-Energy, "
     "quick preset, and the case's solver at the sampling interval (solver_h, a reference "
-    "row): about 30 minutes (data and one seed) on a shared 2-core CPU with --jobs 2 (README)",
+    "row): data and one seed took 15-33 min on a shared 2-core CPU with --jobs 2 before the "
+    "last two were added, which added up to 18 min (docs/RESULTS.md)",
     _quick_models("rod_falling", "quick") + _solver("rod_falling")
     + _quick_models("plate_cantilever", "quick") + _solver("plate_cantilever"),
     compare_rtol=0.05))
