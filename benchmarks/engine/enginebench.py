@@ -19,6 +19,9 @@ the plate (hidden 128, batch 1, whole rollouts, ``checkpoint`` gradients; estima
 memory, and the time per trajectory of a rollout of the paper-size surrogate against the DER /
 DEP solver on the same initial states and moduli (the case's test moduli), one at a time and
 batched. MeshGraphNet at its ``quick`` preset: time of one training step and of one rollout.
+Implicit-Energy at its ``quick`` preset (``benchmarks.engine.energybench``, needs generated
+data; ``--no-energy`` skips it): a training step, the rollout per interval and per trajectory,
+against the solver at the sampling interval and the ground-truth solver.
 
 FLOP count (stated, not measured): ``2 * rows * in * out`` per linear layer of the reference
 architecture (edge MLP on the concatenation ``[e, h_i, h_j]``, node MLP on ``[h, sum e]``),
