@@ -321,3 +321,70 @@ def test_meshbench_curves_bad_input_exits_2(curve_runs, tmp_path, capsys):
     assert main(["curves", "--suite", "curves_test", "--runs-dir", str(tmp_path / "runs"),
                  "--results", str(tmp_path / "r")]) == 2
     assert "budgets.csv: not a budgets file" in capsys.readouterr().err
+
+
+def test_meshbench_curves_keeps_provenance_and_other_sessions_rows(curve_runs, tmp_path,
+                                                                   capsys):
+    """Each run's provenance lands beside the table; a later session that has only some of
+    the run directories (another machine) adds to the table without dropping the others."""
+    import shutil
+
+    from benchmarks.cli import main
+
+    root, args = curve_runs
+    assert main(args) == 0
+    out = root / "results" / "curves_test"
+    mgn, ode = "rod_tiny_test-mgn-smoke-curves-s0", "rod_tiny_test-meshodenet-smoke-curves-s0"
+    for run in (mgn, ode):
+        prov = out / "runs" / run
+        for name in ("config.json", "budgets.csv", "history.csv", "sessions.json",
+                     "record.json"):
+            assert (prov / name).read_bytes() == (root / "runs" / run / name).read_bytes()
+        assert "torch" in json.loads((prov / "evaluation.json").read_text())["versions"]
+    # the next session: the committed results, and only MGN's run directory
+    results, runs = tmp_path / "results", tmp_path / "runs"
+    shutil.copytree(root / "results", results)
+    shutil.copytree(root / "runs" / mgn, runs / mgn)
+    before = pd.read_csv(results / "curves_test" / "curves.csv")
+    capsys.readouterr()
+    assert main(args[:3] + ["--results", str(results), "--runs-dir", str(runs)]
+                + args[7:]) == 0
+    err = capsys.readouterr().err
+    assert f"{ode}: no budget checkpoints yet" in err and "0 checkpoint(s) evaluated" in err
+    after = pd.read_csv(results / "curves_test" / "curves.csv")
+    assert after.equals(before) and set(after["model"]) == {"meshodenet", "mgn"}
+    assert (results / "curves_test" / "runs" / ode / "config.json").exists()
+
+
+def test_quick_points_are_the_short_end_of_the_curves(tmp_path):
+    """``quick_points``: per run the mean over test trajectories, then mean and std over
+    seeds, at the seeds' median training wall time; the solver row (no training) left out."""
+    from benchmarks.suite.curves import ALL_STEPS, curve_figure, quick_points
+
+    assert quick_points(tmp_path).empty  # no quick results: nothing to draw
+    runs = pd.DataFrame({"run": ["a0", "a1", "a2", "s0"], "case": ["c"] * 4,
+                         "model": ["m", "m", "m", "solver_h"], "seed": [0, 1, 2, 0],
+                         "train_wall_time_s": [100.0, 300.0, 200.0, 0.0]})
+    rows = []
+    for run, base in (("a0", 1.0), ("a1", 2.0), ("a2", 3.0), ("s0", 9.0)):
+        for traj, extra in ((0, 0.0), (1, 2.0)):  # per-run mean over trajectories: base + 1
+            rows += [{"run": run, "metric": "rmse_at_step", "trajectory": traj, "step": 5,
+                      "rmse": base + extra},
+                     {"run": run, "metric": "full_rollout_rmse", "trajectory": traj,
+                      "step": 10, "rmse": 10 * (base + extra)},
+                     {"run": run, "metric": "horizon_shape_rmse", "trajectory": traj,
+                      "step": 50, "rmse": 1e9}]
+    runs.to_csv(tmp_path / "runs.csv", index=False)
+    pd.DataFrame(rows).to_csv(tmp_path / "metrics.csv", index=False)
+    q = quick_points(tmp_path).set_index("step")
+    assert list(q["model"]) == ["m", "m"] and sorted(q.index) == [ALL_STEPS, 5]
+    assert q.loc[5, "x_s"] == 200.0 and q.loc[5, "n_seeds"] == 3
+    assert q.loc[5, "rmse_mean"] == pytest.approx(3.0) and q.loc[5, "rmse_std"] == 1.0
+    assert q.loc[ALL_STEPS, "rmse_mean"] == pytest.approx(30.0)
+    curve = pd.DataFrame({"run": "r", "case": "c", "model": "m", "seed": 0,
+                          "budget_s": [120, 300] * 2, "cpu_s": [130.0, 310.0] * 2,
+                          "split": "test", "step": [5, 5, ALL_STEPS, ALL_STEPS],
+                          "rmse": [2.0, 1.0, 20.0, 10.0]})
+    path = curve_figure(curve, "c", {5: 4.0, ALL_STEPS: 40.0}, tmp_path / "f.png",
+                        quick_points(tmp_path))
+    assert path.stat().st_size > 0

@@ -15,14 +15,22 @@ suite's runs out on the run's validation split and on the test split and writes,
   integer);
 - ``curves_checkpoints.json``: the SHA-256 of every checkpoint evaluated, so that a second
   call recomputes only the checkpoints that are new or changed;
+- ``runs/RUN_ID/``: the run's provenance, copied from its run directory (``config.json``,
+  ``budgets.csv``, ``history.csv``, and ``sessions.json`` / ``record.json`` once training
+  wrote them) and ``evaluation.json`` (git commit, library versions, machine and device of the
+  process that evaluated its checkpoints). Small text files, committed with the table: the
+  checkpoints themselves stay in ``RUNS/`` (megabytes each), and a later session, on another
+  machine, adds the runs it trains to the same table without losing these;
 - ``figures/curves_{case}.png``: RMSE at the last table step and over whole rollouts (test
   split) against training CPU time, log-log, one line per model (and seed), with the
-  no-motion level and the paper's MeshODENet number.
+  no-motion level, the paper's MeshODENet number and, where ``RESULTS/quick/`` holds them,
+  the ``quick`` suite's seeds (the short end of each curve).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -39,6 +47,10 @@ COLUMNS = ("run", "case", "model", "seed", "budget_s", "cpu_s", "split", "step",
 ALL_STEPS = -1
 CURVES_FILE = "curves.csv"
 INDEX_FILE = "curves_checkpoints.json"
+PROVENANCE_DIR = "runs"
+#: Copied from each run directory into ``RESULTS/SUITE/runs/RUN_ID/`` (those that exist).
+PROVENANCE_FILES = ("config.json", "budgets.csv", "history.csv", "sessions.json", "record.json")
+EVALUATION_FILE = "evaluation.json"
 SPLITS = ("val", "test")
 #: The paper's MeshODENet RMSE at its last table step, m (Tables 1 and 2; docs/RESULTS.md).
 PAPER_MESHODENET = {"rod_falling": (180, 2.03e-4), "plate_cantilever": (350, 2.72e-4)}
@@ -206,6 +218,9 @@ def build_curves(suite: Suite, *, results_dir="results", runs_dir="runs", data_d
                          f"train its runs first (meshbench run --suite {suite.name})")
     df, index = read_curves(out)
     cache, computed = SplitCache(data_dir), 0
+    for spec in dict.fromkeys(t[0] for t in todo):
+        archive_provenance(runs_dir / spec.run_id, out / PROVENANCE_DIR / spec.run_id)
+    evaluated: set = set()
     for k, (spec, config, row, path) in enumerate(todo, 1):
         key, sha = str(int(row.budget_s)), store.sha256_file(path)
         have = (df["run"] == spec.run_id) & (df["budget_s"] == int(row.budget_s))
@@ -218,14 +233,83 @@ def build_curves(suite: Suite, *, results_dir="results", runs_dir="runs", data_d
         index.setdefault(spec.run_id, {})[key] = sha
         store.save_json(out / INDEX_FILE, index)
         computed += 1
+        if spec.run_id not in evaluated:
+            evaluated.add(spec.run_id)
+            write_evaluation(out / PROVENANCE_DIR / spec.run_id / EVALUATION_FILE, device)
         test_all = rows[(rows["split"] == "test") & (rows["step"] == ALL_STEPS)]["rmse"].iloc[0]
         _log(f"[{k}/{len(todo)}] {spec.run_id}: budget {key} s (CPU {row.cpu_s:.0f} s, epoch "
              f"{row.epoch}): test RMSE over rollouts {test_all:.4g} m")
     _log(f"{computed} checkpoint(s) evaluated, {len(todo) - computed} unchanged and kept")
     paths = {"curves": out / CURVES_FILE}
     if figures:
-        paths["figures"] = curve_figures(out / "figures", df, cache)
+        paths["figures"] = curve_figures(out / "figures", df, cache,
+                                         quick_points(Path(results_dir) / "quick"))
     return {**paths, "computed": computed, "kept": len(todo) - computed}
+
+
+def archive_provenance(run_dir: Path, dest: Path) -> list:
+    """Copy the run's ``PROVENANCE_FILES`` that exist into ``dest`` (atomically, only those
+    that changed); returns the names copied."""
+    copied = []
+    for name in PROVENANCE_FILES:
+        src, dst = run_dir / name, dest / name
+        if not src.exists():
+            continue
+        data = src.read_bytes()
+        if dst.exists() and dst.read_bytes() == data:
+            continue
+        store.atomic_write(dst, lambda f, d=data: f.write(d))
+        copied.append(name)
+    return copied
+
+
+def write_evaluation(path: Path, device: str) -> None:
+    """Who evaluated a run's checkpoints: git commit, library versions, machine, device."""
+    import datetime
+    import platform
+
+    from benchmarks.suite.runner import _cpu_model
+
+    store.save_json(path, {
+        "git_sha": store.git_sha(), "versions": store.library_versions(),
+        "host": platform.node(), "machine": platform.machine(), "cpu_model": _cpu_model(),
+        "cpu_count": os.cpu_count(), "device": str(device),
+        "timestamp": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")})
+
+
+def quick_points(quick_dir: Path) -> pd.DataFrame:
+    """The ``quick`` suite's seeds as points on the curves' axes, from ``quick_dir``'s
+    ``metrics.csv`` (test split; per run the mean over trajectories, as in ``curves.csv``,
+    then mean and std over seeds) and ``runs.csv`` (x: the median over seeds of the training
+    wall time: the quick runs recorded no CPU time): columns case, model, step (``ALL_STEPS``
+    for whole rollouts), x_s, rmse_mean, rmse_std, n_seeds. Empty when the files are missing
+    or lack a column."""
+    cols = ["case", "model", "step", "x_s", "rmse_mean", "rmse_std", "n_seeds"]
+    try:
+        runs = pd.read_csv(quick_dir / "runs.csv")
+        met = pd.read_csv(quick_dir / "metrics.csv")
+    except (OSError, ValueError, pd.errors.ParserError):
+        return pd.DataFrame(columns=cols)
+    need_runs, need_met = {"run", "case", "model", "seed", "train_wall_time_s"}, {
+        "run", "metric", "step", "rmse"}
+    if not need_runs <= set(runs) or not need_met <= set(met):
+        return pd.DataFrame(columns=cols)
+    runs = runs[runs["train_wall_time_s"] > 0]  # the solver row trains nothing
+    met = met[met["run"].isin(runs["run"])]
+    per_run = []
+    for metric, step_of in (("rmse_at_step", None), ("full_rollout_rmse", ALL_STEPS)):
+        d = met[met["metric"] == metric]
+        g = d.groupby(["run", "step"] if step_of is None else ["run"])["rmse"].mean()
+        g = g.reset_index()
+        if step_of is not None:
+            g["step"] = step_of
+        per_run.append(g)
+    per_run = pd.concat(per_run, ignore_index=True).merge(
+        runs[["run", "case", "model", "seed", "train_wall_time_s"]], on="run")
+    out = per_run.groupby(["case", "model", "step"]).agg(
+        x_s=("train_wall_time_s", "median"), rmse_mean=("rmse", "mean"),
+        rmse_std=("rmse", "std"), n_seeds=("seed", "nunique")).reset_index()
+    return out[cols]
 
 
 def no_motion_levels(case_id: str, cache: SplitCache) -> dict:
@@ -234,16 +318,21 @@ def no_motion_levels(case_id: str, cache: SplitCache) -> dict:
     return rmse_summary(M.no_motion(true), true, case_id)
 
 
-def curve_figures(out: Path, df: pd.DataFrame, cache: SplitCache) -> list:
+def curve_figures(out: Path, df: pd.DataFrame, cache: SplitCache,
+                  quick: pd.DataFrame | None = None) -> list:
+    quick = pd.DataFrame() if quick is None else quick
     return [curve_figure(df[df["case"] == case], case, no_motion_levels(case, cache),
-                         out / f"curves_{case}.png")
+                         out / f"curves_{case}.png",
+                         quick[quick["case"] == case] if len(quick) else None)
             for case in sorted(df["case"].unique())]
 
 
-def curve_figure(df: pd.DataFrame, case: str, no_motion: dict, path: Path) -> Path:
+def curve_figure(df: pd.DataFrame, case: str, no_motion: dict, path: Path,
+                 quick: pd.DataFrame | None = None) -> Path:
     """Two log-log panels of the test split against training CPU time: RMSE at the last table
     step and over whole rollouts; one line per model (and seed), the no-motion level dashed,
-    the paper's MeshODENet number (where it exists) dotted."""
+    the paper's MeshODENet number (where it exists) dotted, the ``quick`` suite's seeds
+    (``quick_points``: mean ± std, at their median training wall time) as open squares."""
     from benchmarks.suite.figures import _color, _plt, _save
 
     plt = _plt()
@@ -258,6 +347,15 @@ def curve_figure(df: pd.DataFrame, case: str, no_motion: dict, path: Path) -> Pa
             d = d.sort_values("cpu_s")
             ax.plot(d["cpu_s"], d["rmse"], "o-", color=_color(model, i),
                     label=f"{model} s{seed}" if seeds else model)
+        if quick is not None and len(quick):
+            q = quick[(quick["step"] == step) & quick["model"].isin(test["model"].unique())]
+            for j, r in enumerate(q.itertuples(index=False)):
+                ax.errorbar([r.x_s], [r.rmse_mean], yerr=[[0.0 if pd.isna(r.rmse_std) else
+                                                          min(r.rmse_std, 0.9 * r.rmse_mean)],
+                                                         [0.0 if pd.isna(r.rmse_std) else
+                                                          r.rmse_std]],
+                            fmt="s", mfc="none", color=_color(r.model, j), capsize=3,
+                            label=f"{r.model}, quick ({r.n_seeds} seeds; x: wall time)")
         ax.axhline(no_motion[step], color="0.5", ls="--", label="no motion")
         paper = PAPER_MESHODENET.get(case)
         if paper and step == paper[0]:
