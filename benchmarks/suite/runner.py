@@ -74,7 +74,11 @@ CSV_HEADERS = {
         "rmse (m): mean over the split's trajectories of the per-trajectory RMSE at saved frame "
         "`step` (the case's table steps), or over frames 1..T-1 (the whole rollout) for step = "
         "-1. curves_checkpoints.json holds the SHA-256 of each checkpoint evaluated (a rerun "
-        "evaluates only new or changed ones). See docs/SUITE.md, \"Learning curves\"."),
+        "evaluates only new or changed ones). runs/RUN_ID/ holds each run's provenance: its "
+        "config.json, budgets.csv (CPU and wall time, epoch, load average at each budget), "
+        "history.csv, sessions.json and record.json once written, and evaluation.json (git "
+        "commit, library versions and machine of the evaluation). See docs/SUITE.md, "
+        "\"Learning curves\"."),
     "runs": (
         "runs.csv: one row per training run (train_wall_time_s sums every session of the run; "
         "peak_rss_mb is the peak resident memory of the run's own process (VmHWM); "
