@@ -362,7 +362,26 @@ def curve_figure(df: pd.DataFrame, case: str, no_motion: dict, path: Path,
             ax.axhline(paper[1], color="tab:blue", ls=":", label="paper MeshODENet (GPU)")
         ax.set(xscale="log", yscale="log", xlabel="training CPU time (s)", ylabel="RMSE (m)",
                title=title)
+        _budget_ticks(ax, sorted(test["budget_s"].unique()))
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=8, loc="best")
     fig.suptitle(f"{case}: test error against training time")
     return _save(fig, path)
+
+
+def _budget_label(seconds: float) -> str:
+    """``120`` -> ``"120 s\n2 min"``, ``7200`` -> ``"7200 s\n2 h"``: a budget tick's label."""
+    human = f"{seconds / 3600:g} h" if seconds >= 3600 else f"{seconds / 60:g} min"
+    return f"{seconds:g} s\n{human}"
+
+
+def _budget_ticks(ax, budgets) -> None:
+    """Major x ticks at the budgets (labelled in seconds and minutes or hours), no minor
+    labels: matplotlib's default log-axis labels overlap on a one-and-a-half-decade axis."""
+    from matplotlib.ticker import FixedLocator, NullFormatter
+
+    if not len(budgets):
+        return
+    ax.xaxis.set_major_locator(FixedLocator([float(b) for b in budgets]))
+    ax.set_xticklabels([_budget_label(float(b)) for b in budgets])
+    ax.xaxis.set_minor_formatter(NullFormatter())
