@@ -388,3 +388,11 @@ def test_quick_points_are_the_short_end_of_the_curves(tmp_path):
     path = curve_figure(curve, "c", {5: 4.0, ALL_STEPS: 40.0}, tmp_path / "f.png",
                         quick_points(tmp_path))
     assert path.stat().st_size > 0
+
+
+def test_budget_ticks_name_seconds_and_minutes_or_hours():
+    from benchmarks.suite.curves import _budget_label
+
+    assert _budget_label(120) == "120 s\n2 min"
+    assert _budget_label(2700) == "2700 s\n45 min"
+    assert _budget_label(7200) == "7200 s\n2 h"
