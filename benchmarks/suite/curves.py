@@ -338,7 +338,7 @@ def curve_figure(df: pd.DataFrame, case: str, no_motion: dict, path: Path,
     plt = _plt()
     test = df[df["split"] == "test"]
     last = max(s for s in no_motion if s != ALL_STEPS)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharex=True, layout="constrained")
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.4), sharex=True, layout="constrained")
     seeds = test["seed"].nunique() > 1
     for ax, step, title in ((axes[0], last, f"RMSE at step {last}"),
                             (axes[1], ALL_STEPS, "RMSE over whole rollouts")):
@@ -364,7 +364,9 @@ def curve_figure(df: pd.DataFrame, case: str, no_motion: dict, path: Path,
                title=title)
         _budget_ticks(ax, sorted(test["budget_s"].unique()))
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=8, loc="best")
+    # below the panels: with three or more models an in-axes legend hides points
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncol=3,
+               fontsize=8)
     fig.suptitle(f"{case}: test error against training time")
     return _save(fig, path)
 
