@@ -258,6 +258,98 @@ def test_ctrl_c_stops_crosscheck(tmp_path):
     assert not list(tmp_path.rglob("*.tmp"))
 
 
+# --- a process killed in the middle of an atomic write --------------------------------------
+def _partial_write(d: str) -> str:
+    import tempfile
+
+    fd, tmp = tempfile.mkstemp(prefix=".last.pt.", suffix=".tmp", dir=d)  # as the writers do
+    os.write(fd, b"half a checkpoint")
+    return tmp
+
+
+def _killed_mid_write(d: str):
+    procs.DirLock(d).acquire()
+    _partial_write(d)
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _stuck_mid_write(d: str):
+    procs.DirLock(d).acquire()
+    _partial_write(d)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # as if deaf in a long fsync: needs SIGKILL
+    (Path(d) / "ready").write_text("")
+    time.sleep(60)
+
+
+def test_remove_partial_writes_takes_only_the_atomic_writers_temporaries(tmp_path):
+    real = Path(_partial_write(str(tmp_path)))
+    assert procs.PARTIAL_WRITE.fullmatch(real.name), real.name  # what mkstemp really names
+    store.atomic_write(tmp_path / "meta.json", lambda f: f.write(b"{}"))
+    other = [tmp_path / n for n in ("last.pt", ".lock", "notes.tmp", "x.abcd1234.tmp",
+                                    ".last.pt.abcd123.tmp", "meta.json")]
+    for f in other[:-1]:
+        f.write_text("keep")
+    (tmp_path / ".dir.abcd1234.tmp").mkdir()
+    stale = tmp_path / ".history.csv.q_9z0w1e.tmp"
+    stale.write_text("half")
+    assert sorted(procs.remove_partial_writes(tmp_path)) == sorted([real, stale])
+    assert all(f.exists() for f in other) and (tmp_path / ".dir.abcd1234.tmp").is_dir()
+    assert procs.remove_partial_writes(tmp_path / "absent") == []
+
+
+def test_a_worker_killed_mid_write_leaves_no_temporary_file(tmp_path):
+    d = tmp_path / "run"
+    d.mkdir()
+    got, swept = [], []
+
+    def after(key):
+        swept.append(key)
+        procs.sweep_after_stop(d)
+
+    procs.run_tasks({"a": (_killed_mid_write, (str(d),))}, 1,
+                    lambda *r: got.append(r), after_stop=after)
+    assert got == [("a", "died", -signal.SIGKILL)] and swept == ["a"]
+    assert not list(d.glob("*.tmp"))
+    procs.DirLock(d).acquire().release()
+
+
+def test_an_interrupted_worker_deaf_to_sigterm_leaves_no_temporary_file(tmp_path):
+    import _thread
+    import threading
+
+    d = tmp_path / "run"
+    d.mkdir()
+
+    def interrupt_when_ready():
+        deadline = time.monotonic() + 60
+        while not (d / "ready").exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        _thread.interrupt_main()  # Ctrl-C in the parent
+
+    # as in a terminal (pytest started in the background of a script inherits SIGINT ignored,
+    # and interrupt_main then does nothing)
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    threading.Thread(target=interrupt_when_ready, daemon=True).start()
+    swept = []
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            procs.run_tasks({"a": (_stuck_mid_write, (str(d),))}, 1, lambda *r: None,
+                            after_stop=lambda k: swept.append(procs.sweep_after_stop(d)))
+    finally:
+        signal.signal(signal.SIGINT, old)
+    assert (d / "ready").exists() and len(swept) == 1 and len(swept[0]) == 1
+    assert not list(d.glob("*.tmp"))
+
+
+def test_a_run_removes_what_a_killed_writer_left_in_its_directory(tmp_path, tiny):
+    pl, data, run = tiny
+    r = _copy_run(run, tmp_path / "r")
+    stale = Path(_partial_write(str(r)))
+    assert main(pl + ["train", "--case", TINY, "--model", "mgn", "--preset", "smoke",
+                      "--out", str(r), "--data-dir", str(data), "--resume", "--no-progress"]) == 0
+    assert not stale.exists() and not list(r.glob("*.tmp"))
+
+
 # --- locks ----------------------------------------------------------------------------------
 def _hold_lock(path, ready, release):
     lock = procs.DirLock(path).acquire()

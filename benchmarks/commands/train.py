@@ -69,7 +69,7 @@ def run(args):
         raise ValueError(f"--threads must be >= 1, got {args.threads}")
     pick_device(args.device)  # a bad --device fails before the run directory is created
     torch.set_num_threads(args.threads)
-    from benchmarks.suite.procs import DirLock, LockBusy
+    from benchmarks.suite.procs import DirLock, LockBusy, remove_partial_writes
 
     rank, world, device = _init_distributed(args)
     lock = None
@@ -80,12 +80,14 @@ def run(args):
             except LockBusy as e:
                 raise LockBusy(f"{e} (a meshbench run or train); wait for it to finish or "
                                "choose another --out") from None
+            remove_partial_writes(args.out)  # left by a process killed mid-write
         summary = train_run(args.case, args.model, args.preset, args.out, resume=args.resume,
                             data_dir=args.data_dir, overrides=args.overrides,
                             epochs=args.epochs, device=device,
                             progress=not args.no_progress)
     finally:
-        if lock is not None:
+        if lock is not None:  # an interrupt can land between a write's mkstemp and its try
+            remove_partial_writes(args.out)
             lock.release()
         if world > 1:
             torch.distributed.destroy_process_group()

@@ -104,6 +104,8 @@ def _generate(case, root: Path, workers: int | None, force: bool,
     workers = max(1, int(workers or os.cpu_count() or 1))
     partial = case_dir / ".partial" / h[:16]
     partial.mkdir(parents=True, exist_ok=True)
+    for d in (case_dir, partial):  # left by a process killed in the middle of a write
+        procs.remove_partial_writes(d)
     (case_dir / "meta.json").unlink(missing_ok=True)
 
     moduli = {split: case.sample_youngs(split) for split in SPLITS}
@@ -139,12 +141,14 @@ def _generate(case, root: Path, workers: int | None, force: bool,
                 bar.update(1)
         except KeyboardInterrupt:
             procs.stop_pool(pool)
+            procs.remove_partial_writes(partial)  # we hold the case's lock; workers are gone
             bar.close()
             kept = sum(_load_partial(partial / f"{s}_{i:04d}.npz", y) is not None
                        for s, i, y in jobs)
             raise GenerateInterrupted(case.id, kept, len(jobs), partial) from None
         except BaseException:
             procs.stop_pool(pool)
+            procs.remove_partial_writes(partial)
             raise
         pool.shutdown(wait=True)
     bar.close()

@@ -11,6 +11,12 @@ environment that makes CPU results reproducible across machines of the same kind
   then KILL after ``grace`` seconds) instead of waiting for them.
 - ``DirLock``: an advisory ``flock`` on ``DIR/.lock``; the kernel drops it when its holder
   dies, so a lock can never go stale, and the pid written in the file names the holder.
+- ``remove_partial_writes``: the temporary files that a process killed in the middle of an
+  atomic write left behind (a worker still busy in a slow ``fsync`` when its grace period
+  ends gets SIGKILL; a SIGTERM can also land between the temporary file's creation and the
+  ``try`` that removes it). Whoever holds the directory's lock next deletes them: the
+  parent once its stopped workers are gone (``sweep_after_stop``), a run or a generation
+  when it starts.
 - ``REPRO_ENV``: the kernel-dispatch settings pinned in every worker (see docs/SUITE.md,
   "Reproducibility"): which SIMD code paths torch, MKL, oneDNN and OpenBLAS take.
 """
@@ -22,6 +28,7 @@ import ctypes
 import errno
 import fcntl
 import os
+import re
 import signal
 import sys
 import time
@@ -119,13 +126,14 @@ def _task_main(queue, key, fn, args, parent_pid):
     queue.put((key, *out))
 
 
-def run_tasks(tasks: dict, jobs: int, on_result, poll: float = 0.5) -> None:
+def run_tasks(tasks: dict, jobs: int, on_result, poll: float = 0.5, after_stop=None) -> None:
     """Run ``fn(*args)`` for every ``key: (fn, args)`` of ``tasks``, each in a fresh spawned
     process (its own peak memory, no state carried between tasks), ``jobs`` at a time, in
     order. ``on_result(key, kind, value)`` gets ``kind`` "ok" (value: the return value),
     "error" (value: (type name, message, is an expected error)) or "died" (value: the exit
     code). On any exception in the parent (Ctrl-C) the running processes are stopped
-    (``stop_processes``) and the queued tasks never start."""
+    (``stop_processes``) and the queued tasks never start. ``after_stop(key)`` is called for
+    every task whose process died or was stopped, once it is gone (to clean up after it)."""
     import multiprocessing
     import queue as queue_mod
 
@@ -148,6 +156,8 @@ def run_tasks(tasks: dict, jobs: int, on_result, poll: float = 0.5) -> None:
                 for key, p in list(running.items()):
                     if not p.is_alive() and p.exitcode not in (None, 0):
                         del running[key]
+                        if after_stop is not None:
+                            after_stop(key)
                         on_result(key, "died", p.exitcode)
                 continue
             p = running.pop(key, None)
@@ -156,6 +166,10 @@ def run_tasks(tasks: dict, jobs: int, on_result, poll: float = 0.5) -> None:
             on_result(key, kind, value)
     except BaseException:
         stop_processes(list(running.values()))
+        if after_stop is not None:
+            for key in running:
+                with contextlib.suppress(Exception):
+                    after_stop(key)
         raise
     finally:
         q.close()
@@ -179,6 +193,52 @@ def stop_processes(plist, grace: float = 5.0) -> None:
     for p in plist:
         with contextlib.suppress(Exception):
             p.join(1.0)
+
+
+#: The names ``tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp")`` gives: the temporary
+#: files of the atomic writers (``groundtruth.store.atomic_write``,
+#: ``meshodenet.train._atomic_bytes``), eight random characters before ``.tmp``.
+PARTIAL_WRITE = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+
+
+def remove_partial_writes(directory) -> list:
+    """Delete the atomic writers' temporary files (``PARTIAL_WRITE``) directly in
+    ``directory``; returns their paths. The caller must hold the directory's lock (no live
+    writer may be using them)."""
+    removed = []
+    try:
+        entries = list(Path(directory).iterdir())
+    except FileNotFoundError:
+        return removed
+    for f in entries:
+        if PARTIAL_WRITE.fullmatch(f.name) and f.is_file():
+            with contextlib.suppress(FileNotFoundError):
+                f.unlink()
+                removed.append(f)
+    return removed
+
+
+def sweep_after_stop(directory, name: str = ".lock", wait: float = 5.0) -> list:
+    """``remove_partial_writes(directory)`` once ``DirLock(directory, name)`` is free: the
+    kernel drops a killed worker's lock only when it has really died (a process in an
+    uninterruptible ``fsync`` dies when that returns), so this waits up to ``wait`` s and
+    leaves the files to the next run when the lock stays busy (another live process)."""
+    if not (Path(directory) / name).exists():
+        return []
+    lock = DirLock(directory, name)
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            lock.acquire(wait=False)
+            break
+        except LockBusy:
+            if time.monotonic() >= deadline:
+                return []
+            time.sleep(0.05)
+    try:
+        return remove_partial_writes(directory)
+    finally:
+        lock.release()
 
 
 class LockBusy(RuntimeError):

@@ -194,8 +194,10 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
     lock.acquire(wait=True, on_wait=lambda pid: _log(
         f"{spec.run_id}: process {pid or '?'} is working on this run; waiting for it"))
     try:
+        procs.remove_partial_writes(run_dir)  # left by a process killed mid-write
         rec = _execute(spec, run_dir, data_dir, progress, device)
-    finally:
+    finally:  # an interrupt can land between a write's mkstemp and its try
+        procs.remove_partial_writes(run_dir)
         lock.release()
     # where it ran (or was found finished): runs.csv only, not record.json, not the config
     return {**rec, "host": socket.gethostname()}
@@ -404,7 +406,8 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
 
             run_tasks_dask(tasks, on_result, scheduler, min(jobs, len(runs)))
         else:
-            procs.run_tasks(tasks, min(jobs, len(runs)), on_result)
+            procs.run_tasks(tasks, min(jobs, len(runs)), on_result,
+                            after_stop=lambda run_id: procs.sweep_after_stop(runs_dir / run_id))
     except KeyboardInterrupt:
         raise SuiteInterrupted(suite.name, sorted(records), runs_dir) from None
     if failures:
