@@ -371,6 +371,11 @@ def test_stale_lock_is_taken_over_and_live_lock_is_reported(tmp_path):
         assert ready.wait(30)
         with pytest.raises(procs.LockBusy, match=f"in use by process {holder.pid}"):
             procs.DirLock(d).acquire()
+        with pytest.raises(procs.LockBusy, match=f"in use by process {holder.pid}"):
+            procs.DirLock(d).acquire(wait=True, poll=0.05, timeout=0.3)
+        live = Path(_partial_write(str(d)))  # the live holder's: not swept
+        assert procs.sweep_after_stop(d, wait=0.3) == [] and live.exists()
+        live.unlink()
         told = []
         release.set()
         lock = procs.DirLock(d).acquire(wait=True, on_wait=told.append)

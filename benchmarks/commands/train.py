@@ -80,14 +80,13 @@ def run(args):
             except LockBusy as e:
                 raise LockBusy(f"{e} (a meshbench run or train); wait for it to finish or "
                                "choose another --out") from None
-            remove_partial_writes(args.out)  # left by a process killed mid-write
         summary = train_run(args.case, args.model, args.preset, args.out, resume=args.resume,
                             data_dir=args.data_dir, overrides=args.overrides,
                             epochs=args.epochs, device=device,
                             progress=not args.no_progress)
     finally:
-        if lock is not None:  # an interrupt can land between a write's mkstemp and its try
-            remove_partial_writes(args.out)
+        if lock is not None:  # left by a process killed mid-write, or by an interrupt
+            remove_partial_writes(args.out)  # between a write's mkstemp and its try
             lock.release()
         if world > 1:
             torch.distributed.destroy_process_group()

@@ -14,9 +14,9 @@ environment that makes CPU results reproducible across machines of the same kind
 - ``remove_partial_writes``: the temporary files that a process killed in the middle of an
   atomic write left behind (a worker still busy in a slow ``fsync`` when its grace period
   ends gets SIGKILL; a SIGTERM can also land between the temporary file's creation and the
-  ``try`` that removes it). Whoever holds the directory's lock next deletes them: the
-  parent once its stopped workers are gone (``sweep_after_stop``), a run or a generation
-  when it starts.
+  ``try`` that removes it). Whoever holds the directory's lock deletes them: the parent
+  once its stopped workers are gone (``sweep_after_stop``), a run or ``train`` when it lets
+  the directory go, a generation when it starts and when it is stopped.
 - ``REPRO_ENV``: the kernel-dispatch settings pinned in every worker (see docs/SUITE.md,
   "Reproducibility"): which SIMD code paths torch, MKL, oneDNN and OpenBLAS take.
 """
@@ -223,18 +223,12 @@ def sweep_after_stop(directory, name: str = ".lock", wait: float = 5.0) -> list:
     kernel drops a killed worker's lock only when it has really died (a process in an
     uninterruptible ``fsync`` dies when that returns), so this waits up to ``wait`` s and
     leaves the files to the next run when the lock stays busy (another live process)."""
-    if not (Path(directory) / name).exists():
+    if not (Path(directory) / name).exists():  # never started: nothing to sweep, no lock file
         return []
-    lock = DirLock(directory, name)
-    deadline = time.monotonic() + wait
-    while True:
-        try:
-            lock.acquire(wait=False)
-            break
-        except LockBusy:
-            if time.monotonic() >= deadline:
-                return []
-            time.sleep(0.05)
+    try:
+        lock = DirLock(directory, name).acquire(wait=True, poll=0.05, timeout=wait)
+    except LockBusy:
+        return []
     try:
         return remove_partial_writes(directory)
     finally:
@@ -247,7 +241,8 @@ class LockBusy(RuntimeError):
 
 class DirLock:
     """``flock`` on ``DIR/.lock``. ``acquire(wait=False)`` raises ``LockBusy`` naming the
-    holder; ``acquire(wait=True)`` waits, calling ``on_wait(pid)`` once. The file stays (a
+    holder; ``acquire(wait=True)`` waits (at most ``timeout`` s, then ``LockBusy``), calling
+    ``on_wait(pid)`` once. The file stays (a
     lock file is never deleted: that would let two processes lock two different files)."""
 
     def __init__(self, directory, name: str = ".lock"):
@@ -260,10 +255,12 @@ class DirLock:
         except (OSError, ValueError):
             return None
 
-    def acquire(self, wait: bool = False, on_wait=None, poll: float = 0.5):
+    def acquire(self, wait: bool = False, on_wait=None, poll: float = 0.5,
+                timeout: float | None = None):
         self.path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         told = False
+        deadline = None if timeout is None else time.monotonic() + timeout
         try:
             while True:
                 try:
@@ -272,7 +269,7 @@ class DirLock:
                 except OSError as e:
                     if e.errno not in (errno.EAGAIN, errno.EACCES):
                         raise
-                    if not wait:
+                    if not wait or (deadline is not None and time.monotonic() >= deadline):
                         raise LockBusy(f"{self.path.parent} is in use by process "
                                        f"{self.holder() or '?'}") from None
                     if not told and on_wait is not None:

@@ -194,10 +194,9 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
     lock.acquire(wait=True, on_wait=lambda pid: _log(
         f"{spec.run_id}: process {pid or '?'} is working on this run; waiting for it"))
     try:
-        procs.remove_partial_writes(run_dir)  # left by a process killed mid-write
         rec = _execute(spec, run_dir, data_dir, progress, device)
-    finally:  # an interrupt can land between a write's mkstemp and its try
-        procs.remove_partial_writes(run_dir)
+    finally:  # left by a process killed mid-write, or by an interrupt that landed between
+        procs.remove_partial_writes(run_dir)  # a write's mkstemp and its try
         lock.release()
     # where it ran (or was found finished): runs.csv only, not record.json, not the config
     return {**rec, "host": socket.gethostname()}
