@@ -45,13 +45,25 @@ def one(tmp_path_factory):
     return args, pd.read_csv(tmp / "one" / "history.csv")
 
 
+def _crash_report(stderr: str) -> str:
+    """What a failed torchrun printed: each rank's Python stacks where it crashed (faulthandler,
+    which prints them long before the end of stderr) and the end of stderr (torchrun's summary).
+    A rank has been seen to abort now and then (SIGABRT, "terminate called without an active
+    exception", 3 in 70 runs of the preceding test files) with no Python traceback; its stacks
+    say where."""
+    crash = stderr.find("Fatal Python error")
+    head = stderr[crash:crash + 4000] + "\n...\n" if crash >= 0 else ""
+    return head + stderr[-3000:]
+
+
 def test_torchrun_two_ranks_match_one_process(tmp_path, one):
     args, one = one
     torchrun = Path(sys.executable).parent / "torchrun"
     r = subprocess.run([str(torchrun), "--nproc-per-node", "2", "--standalone", "-m",
                         "benchmarks.cli", "train", *args, "--out", str(tmp_path / "two")],
-                       env=ENV, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr[-3000:]
+                       env={**ENV, "PYTHONFAULTHANDLER": "1"}, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, _crash_report(r.stderr)
     assert r.stdout.count('"best_epoch"') == 1  # rank 0 alone reports
     two = pd.read_csv(tmp_path / "two" / "history.csv")
     assert len(one) == len(two) == 3
