@@ -49,7 +49,7 @@ def _crash_report(stderr: str) -> str:
     """What a failed torchrun printed: each rank's Python stacks where it crashed (faulthandler,
     which prints them long before the end of stderr) and the end of stderr (torchrun's summary).
     A rank has been seen to abort now and then (SIGABRT, "terminate called without an active
-    exception", 3 in 70 runs of the preceding test files) with no Python traceback; its stacks
+    exception", 4 in 90 runs of the preceding test files) with no Python traceback; its stacks
     say where."""
     crash = stderr.find("Fatal Python error")
     head = stderr[crash:crash + 4000] + "\n...\n" if crash >= 0 else ""

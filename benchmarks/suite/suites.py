@@ -145,7 +145,8 @@ register_suite(Suite(
     compare_rtol=0.05))
 register_suite(Suite(
     "paper", "the paper's two cases, MeshODENet and MGN, the paper's settings (GPU "
-    "recommended: about 10 h per MeshODENet rod run on one core, 83-103 s per epoch)",
+    "recommended: a MeshODENet rod run took 6 h of one core, 45-57 s per epoch, on a shared "
+    "2-core CPU; docs/RESULTS.md)",
     _both("rod_falling", "paper") + _both("plate_cantilever", "paper")))
 register_suite(Suite(
     "hanging", "plate_hanging (the paper's text read literally: gravity through the thickness, "
