@@ -156,16 +156,58 @@ class Trajectories:
                               for a in (self.t, self.pos, self.vel, self.youngs)))
 
 
+#: How ``TrainConfig.val_split`` carves the validation trajectories from the training file:
+#: ``stratified`` (default) evenly over the sorted Young's moduli, ``random`` a seeded draw
+#: (every run stored before ``val_split`` existed used it).
+VAL_SPLITS = ("stratified", "random")
+
+
+def _n_val(n: int, val_fraction: float) -> int:
+    if not 0 <= val_fraction < 1:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction!r}")
+    n_val = int(round(val_fraction * n))
+    if val_fraction > 0 and n >= 2:
+        n_val = min(max(n_val, 1), n - 1)
+    return n_val
+
+
 def split_indices(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Carve a validation set from ``n`` training trajectories: ``(train_idx, val_idx)``, sorted.
 
     ``round(val_fraction * n)`` trajectories (at least one when ``val_fraction > 0`` and
     ``n >= 2``) drawn without replacement by ``numpy.random.default_rng(seed)``.
     """
-    if not 0 <= val_fraction < 1:
-        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction!r}")
-    n_val = int(round(val_fraction * n))
-    if val_fraction > 0 and n >= 2:
-        n_val = min(max(n_val, 1), n - 1)
+    n_val = _n_val(n, val_fraction)
     perm = np.random.default_rng(seed).permutation(n)
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+
+
+def stratified_split(youngs, val_fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """Carve a validation set that spans the moduli: ``(train_idx, val_idx)``, sorted.
+
+    The trajectories are sorted by Young's modulus (ties by index) and cut into ``n_val``
+    strata of equal count (``n_val`` as in ``split_indices``); validation takes the middle
+    trajectory of each stratum. Deterministic: no seed. The validation moduli then leave no
+    gap wider than about one stratum between each other, half of one to the ends of the
+    range, and the softest and stiffest trajectories stay in training.
+    """
+    y = np.asarray(youngs, dtype=np.float64)
+    if y.ndim != 1 or not np.all(np.isfinite(y)):
+        raise ValueError(f"youngs must be a 1-D array of finite moduli, got shape {y.shape}")
+    n = len(y)
+    n_val = _n_val(n, val_fraction)
+    order = np.argsort(y, kind="stable")
+    picks = np.floor((np.arange(n_val) + 0.5) * n / n_val).astype(int) if n_val else []
+    val = np.sort(order[picks]) if n_val else np.zeros(0, dtype=np.int64)
+    return np.setdiff1d(np.arange(n), val), val
+
+
+def validation_split(youngs, val_fraction: float, method: str = "stratified",
+                     seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``(train_idx, val_idx)`` of the training file's trajectories (moduli ``youngs``) by
+    ``method`` (``VAL_SPLITS``): ``stratified_split``, or ``split_indices`` with ``seed``."""
+    if method == "stratified":
+        return stratified_split(youngs, val_fraction)
+    if method == "random":
+        return split_indices(len(np.atleast_1d(youngs)), val_fraction, seed)
+    raise ValueError(f"val_split must be one of {', '.join(VAL_SPLITS)}, got {method!r}")

@@ -66,8 +66,10 @@ class TrainConfig:
     ``lr`` is multiplied by ``lr_gamma`` at each epoch in ``lr_milestones`` (paper: 1e-4, / 10
     every 100 epochs for the rod, at 200 and 400 for the plate). ``batch_size`` counts
     training samples (see ``TrajectoryModel.n_training_samples``) per optimizer step.
-    ``val_fraction`` of the training trajectories, drawn with ``split_seed``, form the
-    validation split; ``seed`` seeds the model's initialisation and the shuffling.
+    ``val_fraction`` of the training trajectories form the validation split, carved by
+    ``val_split`` (``meshodenet.data.VAL_SPLITS``): ``stratified``, evenly over the sorted
+    Young's moduli (no seed), or ``random``, drawn with ``split_seed`` (the only method
+    before ``val_split`` existed); ``seed`` seeds the model's initialisation and the shuffling.
     ``grad_clip`` (max global norm) 0 disables clipping. ``eval_batch_size`` trajectories are
     rolled out together during validation. ``max_batches`` > 0 caps the optimizer steps per
     epoch (a fresh random subset of samples each epoch); 0 uses every sample.
@@ -84,6 +86,7 @@ class TrainConfig:
     batch_size: int = 1
     val_fraction: float = 0.1
     val_every: int = 1
+    val_split: str = "stratified"
     split_seed: int = 0
     seed: int = 0
     grad_clip: float = 0.0
@@ -106,6 +109,11 @@ class TrainConfig:
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                     or not ok(v):
                 raise ValueError(f"TrainConfig.{name} has an invalid value {v!r}")
+        from meshodenet.data import VAL_SPLITS
+
+        if self.val_split not in VAL_SPLITS:
+            raise ValueError(f"TrainConfig.val_split must be one of {', '.join(VAL_SPLITS)}, "
+                             f"got {self.val_split!r}")
         ms = tuple(self.lr_milestones)
         if any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in ms) \
                 or list(ms) != sorted(set(ms)):
@@ -149,6 +157,18 @@ def distributed_rank() -> tuple[int, int]:
     return 0, 1
 
 
+def _step_loss(model: TrajectoryModel, data: Trajectories, idx, generator) -> torch.Tensor:
+    """``model.training_loss``, or NaN (a skipped step) where the model's implicit solve of a
+    training window does not converge (``NewtonError``): such a window has no rollout to
+    learn from, like one that diverged."""
+    from meshodenet.implicit import NewtonError
+
+    try:
+        return model.training_loss(data, idx, generator)
+    except NewtonError:
+        return torch.tensor(math.nan)
+
+
 def _distributed_backward(model, data, idx, step_seed: int, rank: int, world: int, max_norm):
     """Data-parallel step of one global batch ``idx``: this rank computes the loss of its
     share ``idx[rank::world]`` weighted by ``len(share) / len(idx)``, so that the sum over
@@ -166,7 +186,7 @@ def _distributed_backward(model, data, idx, step_seed: int, rank: int, world: in
     local = 0.0
     if len(mine):
         lgen = torch.Generator().manual_seed(step_seed * world + rank)
-        loss = model.training_loss(data, mine, lgen) * (len(mine) / len(idx))
+        loss = _step_loss(model, data, mine, lgen) * (len(mine) / len(idx))
         local = float(loss.detach())
         if math.isfinite(local):
             loss.backward()
@@ -196,8 +216,9 @@ def train_epoch(model: TrajectoryModel, opt, data: Trajectories, cfg: TrainConfi
                 bar: tqdm | None = None) -> tuple[float, int]:
     """One pass over shuffled training samples: ``(mean loss, skipped steps)``.
 
-    A step whose loss or gradient is not finite (a rollout that diverged) is skipped rather
-    than applied; an epoch in which every step is skipped raises ``FloatingPointError``.
+    A step whose loss or gradient is not finite (a rollout that diverged, or an implicit
+    solve that did not converge: ``_step_loss``) is skipped rather than applied; an epoch in
+    which every step is skipped raises ``FloatingPointError``.
     """
     model.train()
     rank, world = distributed_rank()
@@ -218,7 +239,7 @@ def train_epoch(model: TrajectoryModel, opt, data: Trajectories, cfg: TrainConfi
             value, norm = _distributed_backward(model, data, idx, (epoch_seed + k) % 2 ** 40,
                                                 rank, world, max_norm)
         else:
-            loss = model.training_loss(data, idx, generator)
+            loss = _step_loss(model, data, idx, generator)
             value = float(loss.detach())
             if math.isfinite(value):
                 loss.backward()
@@ -241,9 +262,15 @@ def train_epoch(model: TrajectoryModel, opt, data: Trajectories, cfg: TrainConfi
 
 def validate(model: TrajectoryModel, data: Trajectories, cfg: TrainConfig) -> float:
     """Position RMSE (m) of rollouts from the initial states of ``data``; ``inf`` when a
-    rollout diverges (non-finite), so that such an epoch is never selected."""
+    rollout diverges (non-finite) or its implicit solve does not converge (``NewtonError``),
+    so that such an epoch is never selected."""
+    from meshodenet.implicit import NewtonError
+
     model.eval()
-    pos, _ = model.rollout_all(data, cfg.eval_batch_size)
+    try:
+        pos, _ = model.rollout_all(data, cfg.eval_batch_size)
+    except NewtonError:
+        return math.inf
     rmse = position_rmse(pos, data.pos)
     return rmse if math.isfinite(rmse) else math.inf
 
@@ -448,7 +475,10 @@ def _epoch(model, opt, sched, gen, train, val, cfg: TrainConfig, epoch: int, sta
     if len(val):
         due = (epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.epochs
         score = validate(model, val, cfg) if due else math.nan
-    improved = not math.isnan(score) and score < state["best_val_rmse"]
+    # the first validated epoch is the best so far even when its rollouts diverged (inf):
+    # a run whose every validation diverges still leaves a best.pt, its inf score says so
+    improved = not math.isnan(score) and (score < state["best_val_rmse"]
+                                          or state["best_epoch"] < 1)
     if improved:
         state["best_val_rmse"], state["best_epoch"] = score, epoch + 1
     dt = time.perf_counter() - t0

@@ -301,3 +301,20 @@ def test_runs_stored_before_a_setting_existed_are_reused_with_its_default(smoke,
         torch.set_num_threads(threads)
     assert with_defaults({"model": "not-registered", "train": {}}) == {"model": "not-registered",
                                                                       "train": {}}
+
+
+def test_runs_stored_before_val_split_read_as_random_splits():
+    """``train.val_split`` was introduced with a new default (stratified); a config stored
+    before it ran with the seeded random draw, and reads back so: it differs from today's
+    default and equals a configuration that asks for ``random``."""
+    from benchmarks.suite.runs import apply_overrides, with_defaults
+    from meshodenet.train import TrainConfig
+
+    old = {"model": "mgn", "train": {"val_fraction": 0.1, "split_seed": 0}, "model_config": {}}
+    assert with_defaults(old)["train"]["val_split"] == "random"
+    assert with_defaults({**old, "train": {**old["train"], "val_split": "stratified"}})[
+        "train"]["val_split"] == "stratified"
+    tc, _ = apply_overrides(TrainConfig(), TrainConfig(), ["train.val_split=random"])
+    assert tc.val_split == "random" and TrainConfig().val_split == "stratified"
+    with pytest.raises(ValueError, match="val_split"):
+        apply_overrides(TrainConfig(), TrainConfig(), ["train.val_split=kfold"])

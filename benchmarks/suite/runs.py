@@ -147,11 +147,19 @@ def _diff(a: dict, b: dict, prefix: str = "") -> list[str]:
     return out
 
 
+#: What a run stored before a setting existed used, where that is not the setting's default:
+#: the validation split was a seeded random draw until ``train.val_split`` (stratified by
+#: modulus by default) was introduced.
+LEGACY_DEFAULTS = {"train.val_split": "random"}
+
+
 def with_defaults(config: dict) -> dict:
     """``config`` (a stored ``config.json``) with the training and model settings it lacks set
     to their defaults: a run stored before a setting existed ran with that setting's default,
     so it compares equal to today's configuration with the default (and differs from one that
-    sets another value). Unknown models and non-dict configs are returned as they are."""
+    sets another value), except where ``LEGACY_DEFAULTS`` says what such a run used instead
+    (a setting whose default changed when it was introduced). Unknown models and non-dict
+    configs are returned as they are."""
     from meshodenet.train import TrainConfig
 
     models = suite_models()
@@ -164,7 +172,8 @@ def with_defaults(config: dict) -> dict:
         filled = dict(config[key])
         for f in dataclasses.fields(cls):
             if f.name not in filled and f.default is not dataclasses.MISSING:
-                filled[f.name] = json.loads(json.dumps(f.default))
+                filled[f.name] = json.loads(json.dumps(
+                    LEGACY_DEFAULTS.get(f"{key}.{f.name}", f.default)))
         out[key] = filled
     return out
 
@@ -174,7 +183,7 @@ def resolve_run(case_id: str, model_id: str, preset: str, *, data_dir=None, over
     """Everything a training run is determined by, resolved without training: the case's
     training arrays, the model spec, the preset's configs after ``overrides``, the validation
     split, and ``config`` (the JSON-ready dict written to ``config.json``)."""
-    from meshodenet.data import Mesh, split_indices
+    from meshodenet.data import Mesh, validation_split
 
     case = get_case(case_id)
     spec = get_model_spec(model_id)
@@ -185,7 +194,8 @@ def resolve_run(case_id: str, model_id: str, preset: str, *, data_dir=None, over
     if epochs is not None:
         train_cfg = dataclasses.replace(train_cfg, epochs=epochs)
     n = arrays["pos"].shape[0]
-    tr_idx, val_idx = split_indices(n, train_cfg.val_fraction, train_cfg.split_seed)
+    tr_idx, val_idx = validation_split(arrays["youngs"], train_cfg.val_fraction,
+                                       train_cfg.val_split, train_cfg.split_seed)
     config = {
         "case": case_id, "case_hash": str(arrays["case_hash"]), "model": model_id,
         "preset": preset, "overrides": list(overrides),

@@ -410,5 +410,6 @@ def mgn_presets(preset: str, kind: str) -> tuple[TrainConfig, MeshGraphNetConfig
     if preset == "quick":
         t, m = QUICK_MGN[kind]
         return replace(base, **t), MeshGraphNetConfig(**m)
-    return (replace(base, epochs=2, lr=1e-3, lr_milestones=(), batch_size=8, max_batches=3),
+    return (replace(base, epochs=2, lr=1e-3, lr_milestones=(), batch_size=8, max_batches=3,
+                    val_split="random"),  # as preset_configs: a smoke run checks plumbing
             MeshGraphNetConfig(hidden=16, layers=2, mlp_hidden_layers=1))
