@@ -81,7 +81,11 @@ class ImplicitEnergy(TrajectoryModel):
     def __init__(self, mesh: Mesh, config: EnergyConfig, train: Trajectories | None = None):
         super().__init__(mesh, config)
         feats = static_features(mesh)
-        self.kinds = [k for k in TYPES if k in feats and len(feats[k][0])]
+        # a planar mesh loaded in its plane never leaves it (the in-plane solve below): its
+        # dihedral angles stay at rest, so it gets no bending term
+        self.planar = bool(np.ptp(mesh.rest_pos[:, 2]) == 0 and not np.any(mesh.force[:, 2]))
+        self.kinds = [k for k in TYPES if k in feats and len(feats[k][0])
+                      and not (k == "dihedral" and self.planar)]
         # float64 throughout: Newton resolves stiff springs' stretches of 1e-5
         self.terms = nn.ModuleDict({k: ElementEnergy(k, config.hidden, config.layers)
                                     for k in self.kinds}).double()
@@ -106,7 +110,6 @@ class ImplicitEnergy(TrajectoryModel):
         edges = np.asarray(mesh.edges)
         self.length = float(np.linalg.norm(mesh.rest_pos[edges[:, 1]]
                                            - mesh.rest_pos[edges[:, 0]], axis=1).mean())
-        self.planar = bool(np.ptp(mesh.rest_pos[:, 2]) == 0 and not np.any(mesh.force[:, 2]))
         if train is not None:  # on the buffers' device (the model is moved after it is built)
             train = train.to(device=self.ystats.device)
             self._statistics(train)
