@@ -20,13 +20,16 @@ translation-invariant measure ``q`` of its element's deformation:
     U_k = \frac{Y}{\bar Y} \, e^{a_t} \, \tfrac12 \hat q_k^{p_t} \, g_t(\hat q_k, s_k, \hat y),
     \qquad g_t = \operatorname{softplus}(\mathrm{MLP}_t) / \ln 2,
 
-``p_t`` 2 for edges and 1 for both kinds of hinge (``POWER``: quadratic in the stretch and the curvature at
-small strain), ``hat q = q / sigma_t`` (``sigma_t`` the RMS of ``q`` over the training frames),
-``s_k`` the element's normalised static features (``static_features``), ``hat y`` the normalised
-logarithm of the modulus, ``a_t`` one log-stiffness per element type. The rest shape is stress
-free and every element stiff at rest (``g > 0``). The MLP's last layer starts at zero
-(``g = 1``) and ``a_t`` at a least-squares fit of the training frames' momentum balance
-(``ImplicitEnergy._fit_log_stiffness``).
+``p_t`` 2 for edges and 1 for both kinds of hinge (``POWER``: quadratic in the stretch, the
+curvature and the change of angle at small strain), ``hat q = q / sigma_t`` (``sigma_t`` the
+RMS of ``q`` over the training frames), ``s_k`` the element's normalised static features
+(``static_features``), ``hat y`` the normalised logarithm of the modulus, ``a_t`` one
+log-stiffness per element type. The rest shape is stress free and every element stiff at rest
+(``g > 0``; ``q`` of hinges is a square, so its derivative vanishes at rest). The MLP's last
+layer starts at zero (``g = 1``) and ``a_t`` at a least-squares fit of the training frames'
+momentum balance (``ImplicitEnergy._fit_log_stiffness``). The geometry's derivatives
+``dq/dx``, ``d2q/dx2`` are analytic for edges and dihedral hinges (``_edge_geometry``,
+``_dihedral_geometry``) and from ``torch.func`` for rod hinges.
 """
 
 from __future__ import annotations
@@ -51,18 +54,18 @@ def _curvature(e: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
 
 
 def static_features(mesh: Mesh) -> dict:
-    """Per element type: ``(nodes (n, k) long, features (n, N_STATIC) float64, rest (n, 3))``.
+    """Per element type: ``(nodes (n, k) long, features (n, N_STATIC) float64, rest)``.
 
     Edge features: ``log(l_0 / mean l_0)``, the summed area of its triangles over ``l_0^2``,
-    the sum of the cotangents of the angles opposite it, its number of triangles. Hinge
-    features: ``log`` of its Voronoi length over the mean, zeros. Each column is standardised
-    over the elements (a constant column becomes zero). Dihedral hinges (triangle meshes):
-    ``log(l_0 / mean l_0)`` of the hinge edge, ``log`` of its two triangles' area ``A_1 + A_2``
-    over the mean, ``l_0^2 / (A_1 + A_2)`` (the discrete-shell stiffness factor: length over
-    height) and the sum of the cotangents of the angles opposite the edge (zero on a
-    rectangle's diagonal), all symmetric in the two triangles. ``rest`` is the rest curvature
-    binormal of rod hinges, the rest dihedral angle ``(n, 1)`` of dihedral hinges, zeros
-    ``(n, 3)`` for edges."""
+    the sum of the cotangents of the angles opposite it, its number of triangles. Rod hinge
+    features (line meshes): ``log`` of its Voronoi length over the mean, zeros. Dihedral hinge
+    features (triangle meshes, ``triangle_hinges``): ``log(l_0 / mean l_0)`` of the hinge
+    edge, ``log`` of its two triangles' area ``A_1 + A_2`` over the mean, ``l_0^2 / (A_1 +
+    A_2)`` (the discrete-shell stiffness factor, length over height) and the sum of the
+    cotangents of the two angles opposite the edge (zero on a rectangle's diagonal), all
+    symmetric in the two triangles. Each column is standardised over the elements (a constant
+    column becomes zero). ``rest``: zeros ``(n, 3)`` for edges, the rest curvature binormal
+    ``(n, 3)`` of rod hinges, the rest dihedral angle ``(n, 1)`` of dihedral hinges."""
     x = np.asarray(mesh.rest_pos, float)
     e = np.asarray(mesh.edges, np.int64)
     l0 = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)

@@ -3,8 +3,8 @@ its config, presets and model.
 
 The mechanics the case's mesh already states (lumped masses ``m``, loads ``f``, linear drag
 ``c``) is kept, and only the internal elastic energy ``U_theta(x)`` is learned
-(``meshodenet.energy``: a sum over edges and rod hinges of functions of rotation- and
-translation-invariant strains)::
+(``meshodenet.energy``: a sum over edges, rod hinges and the dihedral hinges of triangle
+meshes of functions of rotation- and translation-invariant strains)::
 
     m x'' = f - c x' - dU_theta/dx.
 
@@ -19,7 +19,10 @@ solved by Newton's method with the dense Hessian ``diag(m/h^2 + c/h) + d2U/dx2``
 Cholesky, with an LU fallback). L-stable at any stiffness: the plate's ``omega h`` of 19-34 and
 the rod's drag rate ``c h / m`` of 2.6e5 cost nothing. Clamped nodes stay where they are.
 A planar mesh loaded in its plane (rest ``z`` constant, ``f_z = 0``) started in its plane stays
-there exactly (the energy is even in ``z``), so only the in-plane coordinates are solved for.
+there exactly (the energy is even in ``z``), so only the in-plane coordinates are solved for,
+and it has no bending term (its dihedral angles never leave zero). Any other triangle mesh
+(``plate_hanging``: gravity through the thickness) is solved in 3-D with the dihedral bending
+term, without which a flat sheet has no out-of-plane stiffness.
 
 Gradients: at the converged ``x*`` one more Newton step ``x* - A^{-1} r(x*)`` is taken with the
 residual ``r`` on the autograd graph and the matrix ``A`` detached; its derivative is the
