@@ -1,5 +1,5 @@
-r"""A learned elastic energy over a mesh's edges and rod hinges: its values, forces and Hessians
-(the model that steps it is ``meshodenet.models.energy``).
+r"""A learned elastic energy over a mesh's edges, rod hinges and triangle hinges: its values,
+forces and Hessians (the model that steps it is ``meshodenet.models.energy``).
 
 The energy is a sum of element energies, each a function of one rotation- and
 translation-invariant measure ``q`` of its element's deformation:
@@ -8,19 +8,28 @@ translation-invariant measure ``q`` of its element's deformation:
 - rod hinges ``(a, b, c)`` of line meshes: the squared curvature ``q = |kappa_b - kappa_{b,0}|^2``,
   ``kappa_b = 2 e x f / (|e| |f| + e . f)`` of the edges ``e = x_b - x_a``, ``f = x_c - x_b``
   (``kappa_{b,0}`` of the rest shape; a fixed vector, so invariant under translations and
-  rotations about the rest plane's normal, exact for planar rods).
+  rotations about the rest plane's normal, exact for planar rods);
+- dihedral hinges ``(i, j, k, l)`` of triangle meshes (the interior edge ``(i, j)`` and the
+  opposite vertices ``k``, ``l`` of its two triangles): the squared change of the dihedral
+  angle ``q = (theta - theta_0)^2``, ``theta = atan2((a x b) . e/|e|, a . b)`` of the normals
+  ``a = e x p``, ``b = m x e``, ``e = x_j - x_i``, ``p = x_k - x_i``, ``m = x_l - x_i``
+  (``dihedral_angle``; invariant under all rigid motions, and under swapping the two triangles
+  or the edge's ends, which negate both ``theta`` and ``theta_0``).
 
 .. math::
     U_k = \frac{Y}{\bar Y} \, e^{a_t} \, \tfrac12 \hat q_k^{p_t} \, g_t(\hat q_k, s_k, \hat y),
     \qquad g_t = \operatorname{softplus}(\mathrm{MLP}_t) / \ln 2,
 
-``p_t`` 2 for edges and 1 for hinges (``POWER``: quadratic in the stretch and the curvature at
-small strain), ``hat q = q / sigma_t`` (``sigma_t`` the RMS of ``q`` over the training frames),
-``s_k`` the element's normalised static features (``static_features``), ``hat y`` the normalised
-logarithm of the modulus, ``a_t`` one log-stiffness per element type. The rest shape is stress
-free and every element stiff at rest (``g > 0``). The MLP's last layer starts at zero
-(``g = 1``) and ``a_t`` at a least-squares fit of the training frames' momentum balance
-(``ImplicitEnergy._fit_log_stiffness``).
+``p_t`` 2 for edges and 1 for both kinds of hinge (``POWER``: quadratic in the stretch, the
+curvature and the change of angle at small strain), ``hat q = q / sigma_t`` (``sigma_t`` the
+RMS of ``q`` over the training frames), ``s_k`` the element's normalised static features
+(``static_features``), ``hat y`` the normalised logarithm of the modulus, ``a_t`` one
+log-stiffness per element type. The rest shape is stress free and every element stiff at rest
+(``g > 0``; ``q`` of hinges is a square, so its derivative vanishes at rest). The MLP's last
+layer starts at zero (``g = 1``) and ``a_t`` at a least-squares fit of the training frames'
+momentum balance (``ImplicitEnergy._fit_log_stiffness``). The geometry's derivatives
+``dq/dx``, ``d2q/dx2`` are analytic for edges and dihedral hinges (``_edge_geometry``,
+``_dihedral_geometry``) and from ``torch.func`` for rod hinges.
 """
 
 from __future__ import annotations
@@ -33,9 +42,9 @@ from torch import nn
 from torch.func import hessian, jacrev, vmap
 
 from meshodenet.data import Mesh
-from meshodenet.graph import rod_hinges
+from meshodenet.graph import rod_hinges, triangle_hinges
 
-TYPES = ("edge", "hinge")
+TYPES = ("edge", "hinge", "dihedral")
 N_STATIC = 4
 
 
@@ -45,13 +54,18 @@ def _curvature(e: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
 
 
 def static_features(mesh: Mesh) -> dict:
-    """Per element type: ``(nodes (n, k) long, features (n, N_STATIC) float64, rest (n, 3))``.
+    """Per element type: ``(nodes (n, k) long, features (n, N_STATIC) float64, rest)``.
 
     Edge features: ``log(l_0 / mean l_0)``, the summed area of its triangles over ``l_0^2``,
-    the sum of the cotangents of the angles opposite it, its number of triangles. Hinge
-    features: ``log`` of its Voronoi length over the mean, zeros. Each column is standardised
-    over the elements (a constant column becomes zero). ``rest`` is the rest curvature
-    binormal of hinges (zeros for edges)."""
+    the sum of the cotangents of the angles opposite it, its number of triangles. Rod hinge
+    features (line meshes): ``log`` of its Voronoi length over the mean, zeros. Dihedral hinge
+    features (triangle meshes, ``triangle_hinges``): ``log(l_0 / mean l_0)`` of the hinge
+    edge, ``log`` of its two triangles' area ``A_1 + A_2`` over the mean, ``l_0^2 / (A_1 +
+    A_2)`` (the discrete-shell stiffness factor, length over height) and the sum of the
+    cotangents of the two angles opposite the edge (zero on a rectangle's diagonal), all
+    symmetric in the two triangles. Each column is standardised over the elements (a constant
+    column becomes zero). ``rest``: zeros ``(n, 3)`` for edges, the rest curvature binormal
+    ``(n, 3)`` of rod hinges, the rest dihedral angle ``(n, 1)`` of dihedral hinges."""
     x = np.asarray(mesh.rest_pos, float)
     e = np.asarray(mesh.edges, np.int64)
     l0 = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)
@@ -79,6 +93,8 @@ def static_features(mesh: Mesh) -> dict:
         feats[:, 0] = np.log(lv / lv.mean())
         kap0 = _curvature(torch.as_tensor(ea), torch.as_tensor(fb)).numpy()
         out["hinge"] = (hg, feats, kap0)
+    if len(mesh.cells):
+        out["dihedral"] = _dihedral_features(x, triangle_hinges(mesh.cells))
     for name, (nodes, f, rest) in out.items():
         sd = f.std(0)
         out[name] = (nodes, np.where(sd > 1e-12, (f - f.mean(0)) / np.where(sd > 0, sd, 1), 0.0),
@@ -86,11 +102,51 @@ def static_features(mesh: Mesh) -> dict:
     return out
 
 
+def _dihedral_features(x: np.ndarray, hg: np.ndarray):
+    """``(hinges, features (n, N_STATIC), theta_0 (n, 1))`` of the dihedral hinges ``hg``
+    (unstandardised; see ``static_features``)."""
+    e, p, m = (x[hg[:, c]] - x[hg[:, 0]] for c in (1, 2, 3))
+    l0 = np.linalg.norm(e, axis=1)
+    twice = [np.linalg.norm(np.cross(e, w), axis=1) for w in (p, m)]  # 2 A_1, 2 A_2
+    area = 0.5 * (twice[0] + twice[1])
+    # the angle at the opposite vertex w of the edge: cot = (e_i - w) . (e_j - w) / |... x ...|
+    cot = sum(np.einsum("ni,ni->n", w, w - e) / np.maximum(t, 1e-300) for w, t in zip((p, m), twice))
+    feats = np.stack([np.log(l0 / l0.mean()), np.log(area / area.mean()), l0**2 / area, cot], 1)
+    theta0 = dihedral_angle(torch.as_tensor(x[hg])).numpy()
+    return hg, feats, theta0[:, None]
+
+
+def _dihedral_sc(e, p, m):
+    """``(s, c)`` with ``theta = atan2(s, c)``: ``s = -|e| e . (p x m)`` and
+    ``c = (e . m)(e . p) - |e|^2 (p . m)`` (``(a x b) . e/|e|`` and ``a . b`` written out)."""
+    ee = (e * e).sum(-1)
+    s = -ee.sqrt() * (e * torch.cross(p, m, dim=-1)).sum(-1)
+    c = (e * m).sum(-1) * (e * p).sum(-1) - ee * (p * m).sum(-1)
+    return s, c
+
+
+def dihedral_angle(xe: torch.Tensor, rest: torch.Tensor | None = None) -> torch.Tensor:
+    """Signed dihedral angle ``theta`` in ``(-pi, pi]`` of hinges ``xe (..., 4, 3)`` (nodes
+    ``(i, j, k, l)``): zero when flat, the angle between the normals ``a = e x p`` and
+    ``b = m x e`` about ``e``. With ``rest`` (``theta_0``, shape ``(...)``) the change
+    ``theta - theta_0`` wrapped to ``(-pi, pi]`` (``(s, c)`` rotated by ``-theta_0``: exactly
+    ``theta`` when ``theta_0 = 0``)."""
+    e, p, m = (xe[..., c, :] - xe[..., 0, :] for c in (1, 2, 3))
+    s, c = _dihedral_sc(e, p, m)
+    if rest is None:
+        return torch.atan2(s, c)
+    c0, s0 = torch.cos(rest), torch.sin(rest)
+    return torch.atan2(s * c0 - c * s0, c * c0 + s * s0)
+
+
 def measure(kind: str, xe: torch.Tensor, rest: torch.Tensor, l0: torch.Tensor) -> torch.Tensor:
-    """The invariant ``q`` of elements ``xe (..., k, 3)``: an edge's stretch, a hinge's squared
-    curvature ``|kappa_b - kappa_{b,0}|^2`` (smooth at the rest shape)."""
+    """The invariant ``q`` of elements ``xe (..., k, 3)``: an edge's stretch, a rod hinge's
+    squared curvature ``|kappa_b - kappa_{b,0}|^2``, a dihedral hinge's squared change of angle
+    ``(theta - theta_0)^2`` (both smooth at the rest shape)."""
     if kind == "edge":
         return (xe[..., 1, :] - xe[..., 0, :]).norm(dim=-1) / l0 - 1.0
+    if kind == "dihedral":
+        return dihedral_angle(xe, rest[..., 0]) ** 2
     kap = _curvature(xe[..., 1, :] - xe[..., 0, :], xe[..., 2, :] - xe[..., 1, :]) - rest
     return (kap * kap).sum(-1)
 
@@ -112,9 +168,89 @@ def _edge_geometry(x, nodes, l0, second: bool):
     return q, dq, d2q
 
 
+def _skew(v):
+    """``[v]_x (..., 3, 3)``, the matrix of ``w -> v x w``."""
+    z = torch.zeros_like(v[..., 0])
+    return torch.stack([torch.stack([z, -v[..., 2], v[..., 1]], -1),
+                        torch.stack([v[..., 2], z, -v[..., 0]], -1),
+                        torch.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def _outer(a, b):
+    return a[..., :, None] * b[..., None, :]
+
+
+def _blocks(rows):
+    """A ``(..., 9, 9)`` matrix from 3 x 3 rows of ``(..., 3, 3)`` blocks."""
+    return torch.cat([torch.cat(r, -1) for r in rows], -2)
+
+
+#: ``y = (x_j - x_i, x_k - x_i, x_l - x_i) = D x`` of a hinge's nodes ``x = (x_i, x_j, x_k, x_l)``
+_D = torch.cat([-torch.eye(3).repeat(3, 1), torch.eye(9)], 1).double()
+
+
+def _dihedral_geometry(x, nodes, theta0, second: bool):
+    r"""``q = d^2``, ``d = theta - theta_0`` (wrapped) of dihedral hinges ``nodes (n, 4)`` at
+    ``x (B, N, 3)``, with ``dq = 2 d dtheta`` ``(B, n, 12)`` and
+    ``d2q = 2 (dtheta dtheta^T + d d2theta)`` ``(B, n, 12, 12)``.
+
+    ``theta = atan2(s, c)`` (``_dihedral_sc``) on ``y = (e, p, m)``:
+    ``dtheta = (c ds - s dc) / r^2``, ``r^2 = s^2 + c^2``, and
+    ``d2theta = (c d2s - s d2c) / r^2 + (2 s c (dc dc^T - ds ds^T)
+    + (s^2 - c^2)(ds dc^T + dc ds^T)) / r^4``; with ``V = e . (p x m)``, ``l = |e|``,
+    ``u = e / l``: ``s = -l V``, ``dV = (p x m, m x e, e x p)``, ``d2V`` the blocks
+    ``(e, p) = -[m]_x``, ``(e, m) = [p]_x``, ``(p, m) = -[e]_x``; ``ds = -(V dl + l dV)``,
+    ``dl = (u, 0, 0)``, ``d2s = -(V d2l + dl dV^T + dV dl^T + l d2V)``,
+    ``d2l = (I - u u^T) / l`` on ``(e, e)``; ``dc = (m (e.p) + p (e.m) - 2 e (p.m),
+    e (e.m) - m l^2, e (e.p) - p l^2)``, ``d2c``: ``(e, e) = m p^T + p m^T - 2 (p.m) I``,
+    ``(e, p) = m e^T - 2 e m^T + (e.m) I``, ``(e, m) = p e^T - 2 e p^T + (e.p) I``,
+    ``(p, m) = e e^T - l^2 I``, ``(p, p) = (m, m) = 0``. On the nodes ``D^T (.)`` and
+    ``D^T (.) D`` (``_D``). As Tamstorf & Grinspun (2013) and ``groundtruth.hinge``, derived
+    here again."""
+    xe = x[:, nodes]                                                  # (B, n, 4, 3)
+    e, p, m = (xe[..., c, :] - xe[..., 0, :] for c in (1, 2, 3))
+    s, c = _dihedral_sc(e, p, m)
+    d = dihedral_angle(xe, theta0[:, 0])
+    ee, ep, em, pm = ((a * b).sum(-1)[..., None] for a, b in ((e, e), (e, p), (e, m), (p, m)))
+    l = ee.sqrt()
+    u = e / l
+    V = (-s / l[..., 0])[..., None]
+    r2 = (s * s + c * c)[..., None]
+    zero = torch.zeros_like(e)
+    dV = torch.cat([torch.cross(p, m, dim=-1), torch.cross(m, e, dim=-1),
+                    torch.cross(e, p, dim=-1)], -1)
+    dl = torch.cat([u, zero, zero], -1)
+    ds = -(V * dl + l * dV)
+    dc = torch.cat([m * ep + p * em - 2 * e * pm, e * em - m * ee, e * ep - p * ee], -1)
+    dth = (c[..., None] * ds - s[..., None] * dc) / r2
+    D = _D.to(x)
+    dq = (2 * d[..., None] * dth) @ D
+    if not second:
+        return d * d, dq, None
+    I = torch.eye(3, dtype=x.dtype, device=x.device).expand(*e.shape[:-1], 3, 3)
+    Z = torch.zeros_like(I)
+    km, kp, ke = _skew(m), _skew(p), _skew(e)
+    d2V = _blocks([[Z, -km, kp], [km, Z, -ke], [-kp, ke, Z]])
+    d2l = _blocks([[(I - _outer(u, u)) / l[..., None], Z, Z], [Z, Z, Z], [Z, Z, Z]])
+    d2s = -(V[..., None] * d2l + _outer(dl, dV) + _outer(dV, dl) + l[..., None] * d2V)
+    ce = _outer(m, p) + _outer(p, m) - 2 * pm[..., None] * I
+    cp = _outer(m, e) - 2 * _outer(e, m) + em[..., None] * I
+    cm = _outer(p, e) - 2 * _outer(e, p) + ep[..., None] * I
+    cpm = _outer(e, e) - ee[..., None] * I
+    t = lambda a: a.transpose(-1, -2)  # noqa: E731
+    d2c = _blocks([[ce, cp, cm], [t(cp), Z, cpm], [t(cm), t(cpm), Z]])
+    sc, r4 = (s * c)[..., None, None], r2[..., None] ** 2
+    d2th = (c[..., None, None] * d2s - s[..., None, None] * d2c) / r2[..., None] \
+        + (2 * sc * (_outer(dc, dc) - _outer(ds, ds))
+           + (s * s - c * c)[..., None, None] * (_outer(ds, dc) + _outer(dc, ds))) / r4
+    d2q = 2 * (_outer(dth, dth) + d[..., None, None] * d2th)
+    return d * d, dq, D.T @ d2q @ D
+
+
 #: the energy's dependence on the normalised invariant at small strain: quadratic in an edge's
-#: stretch, linear in a hinge's squared curvature (quadratic in the curvature)
-POWER = {"edge": 2, "hinge": 1}
+#: stretch, linear in a hinge's squared curvature or squared change of dihedral angle
+#: (quadratic in the curvature and the angle)
+POWER = {"edge": 2, "hinge": 1, "dihedral": 1}
 
 
 class ElementEnergy(nn.Module):
@@ -203,6 +339,9 @@ class EnergySystem:
                 n, k = nodes.shape
                 if kind == "edge":
                     out[kind] = _edge_geometry(x.detach(), nodes, l0, second)
+                    continue
+                if kind == "dihedral":
+                    out[kind] = _dihedral_geometry(x.detach(), nodes, rest, second)
                     continue
                 xe = x.detach()[:, nodes].reshape(-1, 3 * k)
                 r = rest.repeat(self.B, 1)

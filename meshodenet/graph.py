@@ -54,6 +54,25 @@ def rod_hinges(edges: np.ndarray, n_nodes: int) -> np.ndarray:
     return np.array(hinges, np.int64).reshape(-1, 3)
 
 
+def triangle_hinges(cells: np.ndarray) -> np.ndarray:
+    """Hinges ``(H, 4)`` of a triangle mesh: ``(i, j, k, l)`` for every edge ``i < j`` shared by
+    exactly two triangles ``(i, j, k)`` and ``(i, j, l)`` (in either orientation), the
+    triangle of lower index first; sorted by ``(i, j)``. Boundary edges (one triangle) and
+    non-manifold edges (three or more) have none."""
+    cells = np.asarray(cells, np.int64).reshape(-1, 3)
+    sides = np.concatenate([cells[:, [0, 1, 2]], cells[:, [1, 2, 0]], cells[:, [2, 0, 1]]])
+    tri = np.tile(np.arange(len(cells)), 3)
+    pairs = np.sort(sides[:, :2], axis=1)
+    order = np.lexsort((tri, pairs[:, 1], pairs[:, 0]))  # by edge, then by triangle
+    pairs, opposite = pairs[order], sides[order, 2]
+    if not len(pairs):
+        return np.zeros((0, 4), np.int64)
+    start = np.flatnonzero(np.r_[True, np.any(pairs[1:] != pairs[:-1], axis=1)])
+    count = np.diff(np.r_[start, len(pairs)])
+    two = start[count == 2]
+    return np.stack([pairs[two, 0], pairs[two, 1], opposite[two], opposite[two + 1]], 1)
+
+
 @dataclass(frozen=True)
 class GraphBatch:
     """``n_graphs`` copies of one mesh as a disjoint graph of ``n_graphs * n_per_graph`` nodes.

@@ -3,8 +3,8 @@ its config, presets and model.
 
 The mechanics the case's mesh already states (lumped masses ``m``, loads ``f``, linear drag
 ``c``) is kept, and only the internal elastic energy ``U_theta(x)`` is learned
-(``meshodenet.energy``: a sum over edges and rod hinges of functions of rotation- and
-translation-invariant strains)::
+(``meshodenet.energy``: a sum over edges, rod hinges and the dihedral hinges of triangle
+meshes of functions of rotation- and translation-invariant strains)::
 
     m x'' = f - c x' - dU_theta/dx.
 
@@ -19,7 +19,10 @@ solved by Newton's method with the dense Hessian ``diag(m/h^2 + c/h) + d2U/dx2``
 Cholesky, with an LU fallback). L-stable at any stiffness: the plate's ``omega h`` of 19-34 and
 the rod's drag rate ``c h / m`` of 2.6e5 cost nothing. Clamped nodes stay where they are.
 A planar mesh loaded in its plane (rest ``z`` constant, ``f_z = 0``) started in its plane stays
-there exactly (the energy is even in ``z``), so only the in-plane coordinates are solved for.
+there exactly (the energy is even in ``z``), so only the in-plane coordinates are solved for,
+and it has no bending term (its dihedral angles never leave zero). Any other triangle mesh
+(``plate_hanging``: gravity through the thickness) is solved in 3-D with the dihedral bending
+term, without which a flat sheet has no out-of-plane stiffness.
 
 Gradients: at the converged ``x*`` one more Newton step ``x* - A^{-1} r(x*)`` is taken with the
 residual ``r`` on the autograd graph and the matrix ``A`` detached; its derivative is the
@@ -81,7 +84,11 @@ class ImplicitEnergy(TrajectoryModel):
     def __init__(self, mesh: Mesh, config: EnergyConfig, train: Trajectories | None = None):
         super().__init__(mesh, config)
         feats = static_features(mesh)
-        self.kinds = [k for k in TYPES if k in feats and len(feats[k][0])]
+        # a planar mesh loaded in its plane never leaves it (the in-plane solve below): its
+        # dihedral angles stay at rest, so it gets no bending term
+        self.planar = bool(np.ptp(mesh.rest_pos[:, 2]) == 0 and not np.any(mesh.force[:, 2]))
+        self.kinds = [k for k in TYPES if k in feats and len(feats[k][0])
+                      and not (k == "dihedral" and self.planar)]
         # float64 throughout: Newton resolves stiff springs' stretches of 1e-5
         self.terms = nn.ModuleDict({k: ElementEnergy(k, config.hidden, config.layers)
                                     for k in self.kinds}).double()
@@ -106,7 +113,6 @@ class ImplicitEnergy(TrajectoryModel):
         edges = np.asarray(mesh.edges)
         self.length = float(np.linalg.norm(mesh.rest_pos[edges[:, 1]]
                                            - mesh.rest_pos[edges[:, 0]], axis=1).mean())
-        self.planar = bool(np.ptp(mesh.rest_pos[:, 2]) == 0 and not np.any(mesh.force[:, 2]))
         if train is not None:  # on the buffers' device (the model is moved after it is built)
             train = train.to(device=self.ystats.device)
             self._statistics(train)
