@@ -209,22 +209,31 @@ def test_newton_failure_names_the_interval():
         model.rollout(tr.pos[:1, 0], tr.vel[:1, 0], tr.youngs[:1], tr.t)
 
 
+def set_known_energy(model, sigma: dict, ystats, log_stiffness: dict) -> None:
+    """Give ``model`` a known energy: every MLP zeroed (``g = 1``), the invariants' scales
+    ``sigma`` and the moduli statistics ``ystats`` fixed, and the log-stiffnesses set (what
+    the least-squares fit must then recover from the model's own rollouts)."""
+    with torch.no_grad():
+        for term in model.terms.values():
+            for p in term.mlp.parameters():
+                p.zero_()
+        for kind, value in sigma.items():
+            getattr(model, f"{kind}_sigma").fill_(value)
+        model.ystats.copy_(torch.tensor(ystats))
+        for kind, value in log_stiffness.items():
+            model.terms[kind].log_stiffness.fill_(value)
+
+
 def test_least_squares_stiffness_recovers_a_quadratic_energy():
     """Data made by the model itself with g = 1 and known stiffnesses: the initial fit finds
     them (relative error 1e-6)."""
     arrays = rod_arrays(n_nodes=6, B=3, T=8)
     arrays["damping"] = arrays["damping"] * np.array([1, 1, 20, 1, 1, 1])  # a dragging node bends it
     model, tr = _model(arrays, train=False)
+    # stiffnesses about 100 times m / h^2
+    set_known_energy(model, {"edge": 1e-3, "hinge": 1e-3}, [1e9, 20.0, 1.0, 1e-6],
+                     {"edge": -19.0, "hinge": -12.5})
     with torch.no_grad():
-        for term in model.terms.values():
-            for p in term.mlp.parameters():
-                p.zero_()
-        model.edge_sigma.fill_(1e-3)
-        model.hinge_sigma.fill_(1e-3)
-        model.ystats.copy_(torch.tensor([1e9, 20.0, 1.0, 1e-6]))
-        # stiffnesses about 100 times m / h^2
-        model.terms["edge"].log_stiffness.fill_(-19.0)
-        model.terms["hinge"].log_stiffness.fill_(-12.5)
         pos, vel = model.rollout(tr.pos[:, 0], tr.vel[:, 0] * 0, tr.youngs, tr.t)
         for term in model.terms.values():
             term.log_stiffness.fill_(0.0)

@@ -20,6 +20,7 @@ from meshodenet.graph import triangle_hinges
 from meshodenet.models.energy import EnergyConfig, ImplicitEnergy
 from meshodenet.registry import get_model_spec, load_model
 from tests.conftest import strip_arrays
+from tests.test_energy import set_known_energy
 
 F64 = dict(dtype=torch.float64)
 
@@ -338,15 +339,9 @@ def test_least_squares_stiffness_recovers_the_bending_stiffness():
     under gravity through its thickness): the initial fit finds both (to 1e-5 in log)."""
     arrays = _through_thickness_strip(clamped_rows=1, T=8)
     model, tr = _model(arrays, train=False)
+    set_known_energy(model, {"edge": 1e-3, "dihedral": 1e-2}, [5e6, math.log(5e6), 1.0, 1e-6],
+                     {"edge": -13.0, "dihedral": -8.0})
     with torch.no_grad():
-        for term in model.terms.values():
-            for p in term.mlp.parameters():
-                p.zero_()
-        model.edge_sigma.fill_(1e-3)
-        model.dihedral_sigma.fill_(1e-2)
-        model.ystats.copy_(torch.tensor([5e6, math.log(5e6), 1.0, 1e-6]))
-        model.terms["edge"].log_stiffness.fill_(-13.0)
-        model.terms["dihedral"].log_stiffness.fill_(-8.0)
         x0 = tr.pos[:, 0] * 0 + torch.as_tensor(arrays["rest_pos"])
         t = torch.as_tensor(arrays["t"])
         pos, vel = model.rollout(x0, torch.zeros_like(x0), tr.youngs, t)
