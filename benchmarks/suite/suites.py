@@ -138,8 +138,8 @@ def _solver(case: str) -> tuple:
 register_suite(Suite(
     "quick", "the paper's two cases, MeshODENet, MGN, MeshODENet-IMEX and Implicit-Energy, "
     "quick preset, and the case's solver at the sampling interval (solver_h, a reference "
-    "row): data and one seed took 15-33 min on a shared 2-core CPU with --jobs 2 before the "
-    "last two were added, which added up to 18 min (docs/RESULTS.md)",
+    "row): data and one seed took 12.5 min from a fresh clone (tox -e bench, --jobs 2) on a "
+    "shared 2-core CPU (docs/RESULTS.md)",
     _quick_models("rod_falling", "quick") + _solver("rod_falling")
     + _quick_models("plate_cantilever", "quick") + _solver("plate_cantilever"),
     compare_rtol=0.05))
@@ -155,7 +155,7 @@ register_suite(Suite(
 register_suite(Suite(
     "integrators", "MeshODENet on rod_falling (quick preset) with euler / midpoint / rk4 / "
     "dopri5 (direct gradients), rk4 with adjoint and checkpointed gradients, and the implicit "
-    "backward_euler / sdirk2 (implicit gradients; each 5-50 times rk4's training cost)",
+    "backward_euler / sdirk2 (implicit gradients; an epoch of each 5-7 times rk4's)",
     tuple(RunSpec("rod_falling", "meshodenet", "quick", integrator=i, grad_mode="direct")
           for i in ("euler", "midpoint", "rk4", "dopri5", "backward_euler", "sdirk2"))
     + (RunSpec("rod_falling", "meshodenet", "quick", integrator="rk4", grad_mode="adjoint"),
