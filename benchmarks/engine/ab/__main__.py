@@ -1,0 +1,125 @@
+"""``python -m benchmarks.engine.ab {train,merge}``: the A/B of the authors' MeshODENet code
+against our ``paper`` preset (docs/AB.md). Bad input exits 2 with one line naming it; an
+interruption (Ctrl-C, SIGTERM) exits 130 keeping every finished epoch."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import signal
+import sys
+from pathlib import Path
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.engine.ab", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    t = sub.add_parser("train", help="train one code, one row per epoch into OUT/ab.csv (resumable)")
+    t.add_argument("--case", required=True, help="case id (plate_cantilever, rod_falling, ...)")
+    t.add_argument("--code", required=True, help="authors (their checkout) or ours (paper preset)")
+    t.add_argument("--out", required=True, type=Path, help="run directory; an existing run continues")
+    t.add_argument("--authors-repo", type=Path, default=None,
+                   help="checkout of github.com/leixinma/MeshODENet (--code authors; RUNS THEIR CODE)")
+    t.add_argument("--epochs", type=int, default=None,
+                   help="total epochs (default 25 for a triangle mesh, 50 for a rod)")
+    t.add_argument("--data-dir", default=None, help="the store (default $MESHBENCH_DATA or ./data)")
+    t.add_argument("--frames", type=int, default=None,
+                   help="first frames of every trajectory (default: the authors' rule, at most 400)")
+    t.add_argument("--seed", type=int, default=42, help="seed of both codes (the authors': 42)")
+    t.add_argument("--threads", type=int, default=1, help="torch threads (default 1: one core)")
+    t.add_argument("--set", dest="overrides", action="append", default=[], metavar="GROUP.FIELD=VALUE",
+                   help="--code ours: override a paper-preset setting (train.* / model.*)")
+    t.add_argument("--max-train", type=int, default=None,
+                   help="SMOKE CHECKS ONLY: the first N training trajectories")
+    t.add_argument("--max-test", type=int, default=None,
+                   help="SMOKE CHECKS ONLY: the first N test trajectories")
+    t.add_argument("--no-progress", action="store_true", help="no progress bars (epoch lines stay)")
+    t.set_defaults(func=_train)
+    m = sub.add_parser("merge", help="both runs and the published log into RESULTS/NAME_ab.csv + figure")
+    m.add_argument("--case", required=True)
+    m.add_argument("--authors", required=True, type=Path, help="run directory of --code authors")
+    m.add_argument("--ours", required=True, type=Path, help="run directory of --code ours")
+    m.add_argument("--results", type=Path, default=Path("results/paper"))
+    m.add_argument("--authors-repo", type=Path, default=None,
+                   help="read their whole published log from this checkout (a CSV; no code runs)")
+    m.add_argument("--name", default=None, help="file stem (default plate / rod / the case id)")
+    m.add_argument("--allow-smoke", action="store_true", help="merge runs on part of the data")
+    m.set_defaults(func=_merge)
+    return p
+
+
+def _train(args) -> int:
+    from benchmarks.engine.ab import core
+    from benchmarks.suite.registry import get_case
+
+    case = get_case(args.case)
+    if args.code == "authors":
+        from benchmarks.engine.ab.authors import check_checkout
+
+        check_checkout(args.authors_repo)
+    elif args.authors_repo is not None:
+        raise core.ABError("--authors-repo is for --code authors only")
+    if args.overrides and args.code != "ours":
+        raise core.ABError("--set is for --code ours only (the authors' protocol is fixed)")
+    epochs = args.epochs
+    if epochs is None:  # rods are line meshes, every other case a triangle mesh
+        epochs = core.DEFAULT_EPOCHS["line" if case.kind == "rod" else "triangle"]
+    setup = core.Setup(case=args.case, code=args.code, epochs=epochs, frames=args.frames,
+                       seed=args.seed, threads=args.threads, max_train=args.max_train,
+                       max_test=args.max_test)
+    if setup.is_smoke:
+        print("smoke run: --max-train / --max-test use part of the data; not an A/B result",
+              file=sys.stderr)
+    progress = not args.no_progress
+    if args.code == "authors":
+        from benchmarks.engine.ab import authors
+
+        authors.run(setup, args.out, args.data_dir, args.authors_repo, progress)
+    else:
+        from benchmarks.engine.ab import ours
+
+        ours.run(setup, args.out, args.data_dir, tuple(args.overrides), progress)
+    print(f"done: {args.out / core.CSV_FILE}")
+    return 0
+
+
+def _merge(args) -> int:
+    from benchmarks.engine.ab.merge import merge
+
+    path = merge(args.case, args.authors, args.ours, args.results, args.authors_repo,
+                 args.allow_smoke, args.name)
+    print(f"wrote {path} and {path.parent / 'figures' / (path.stem + '.png')}")
+    return 0
+
+
+def _sigterm(signum, frame):
+    raise KeyboardInterrupt()
+
+
+def main(argv=None) -> int:
+    from benchmarks.suite import procs
+
+    procs.apply_repro_env("cpu")  # the kernel pins of `meshbench train`, before torch loads
+    from benchmarks.engine.ab.core import ABError
+    from benchmarks.suite.registry import RegistryError
+    from groundtruth.store import StoreError
+
+    args = build_parser().parse_args(argv)
+    old_term = signal.signal(signal.SIGTERM, _sigterm)
+    try:
+        return int(args.func(args) or 0)
+    except (ABError, ValueError, RegistryError, StoreError, FileNotFoundError) as e:
+        print(f"ab {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        again = "python -m benchmarks.engine.ab " + " ".join(
+            shlex.quote(w) for w in (sys.argv[1:] if argv is None else argv))
+        print(f"ab {args.command}: interrupted; every finished epoch is kept, continue with "
+              f"`{again}`", file=sys.stderr)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, old_term)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
