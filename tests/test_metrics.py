@@ -3,9 +3,12 @@ import pandas as pd
 import pytest
 
 from benchmarks.suite.metrics import (
+    PAPER_TABLES,
+    PER_COORDINATE,
     full_rollout_rmse,
     no_motion,
     rmse_at_step_table,
+    rmse_per_coordinate,
     rmse_per_step,
     tidy_metrics,
 )
@@ -49,6 +52,49 @@ def test_table_mean_std_and_relative_increase():
     assert r.rmse_mean == 4 and r.rmse_std == 2 and r.n_trajectories == 2
     assert np.isclose(r.increase_vs_meshodenet_pct, 100.0)
     assert np.allclose(tab[tab.model == "meshodenet"].increase_vs_meshodenet_pct, 0.0)
+
+
+def test_per_coordinate_rmse_is_the_authors_formula_and_a_third_of_the_squared_norm():
+    """The authors' evaluation: sqrt of the mean over nodes and coordinates of the squared
+    error (their evaluation notebook's compute_rmse on (nodes, 3) arrays); by hand on one node,
+    and against the Euclidean per-node RMSE / sqrt(3) on random arrays."""
+    true = np.zeros((1, 2, 2, 3))
+    pred = true.copy()
+    pred[0, 1, 0] = [3.0, 4.0, 0.0]          # 25 over 2 nodes x 3 coordinates
+    assert rmse_per_coordinate(pred, true)[0, 1] == pytest.approx(np.sqrt(25 / 6))
+    rng = np.random.default_rng(1)
+    pred, true = rng.normal(size=(3, 4, 5, 3)), rng.normal(size=(3, 4, 5, 3))
+    authors = np.array([[np.sqrt(np.mean((pred[b, k] - true[b, k]) ** 2)) for k in range(4)]
+                        for b in range(3)])
+    np.testing.assert_allclose(rmse_per_coordinate(pred, true), authors, rtol=1e-14)
+    np.testing.assert_allclose(rmse_per_step(pred, true) * PER_COORDINATE, authors, rtol=1e-14)
+
+
+def test_table_reports_the_papers_convention_beside_ours():
+    t = np.arange(4) * 0.1
+    rng = np.random.default_rng(2)
+    true = rng.normal(size=(3, 4, 5, 3))
+    pred = true + rng.normal(size=true.shape)
+    tab = rmse_at_step_table(tidy_metrics(pred, true, t, {"case": "c", "model": "meshodenet"}),
+                             {"c": (1, 2, 3)})
+    cols = list(tab.columns)
+    assert cols.index("rmse_coord_mean") == cols.index("rmse_std") + 1
+    direct = rmse_per_coordinate(pred, true)
+    np.testing.assert_allclose(tab["rmse_coord_mean"], direct[:, 1:].mean(0), rtol=1e-12)
+    np.testing.assert_allclose(tab["rmse_coord_std"], direct[:, 1:].std(0), rtol=1e-10)
+    np.testing.assert_allclose(tab["rmse_coord_mean"] * np.sqrt(3), tab["rmse_mean"], rtol=1e-14)
+
+
+def test_paper_tables_hold_the_papers_steps_and_numbers():
+    from benchmarks.suite.metrics import PAPER_STEPS
+
+    for case, models in PAPER_TABLES.items():
+        assert set(models) == {"meshodenet", "mgn"}
+        for row in models.values():
+            assert tuple(row) == PAPER_STEPS[case]
+    # spot values of Tables 1 and 2 (1e-4 m)
+    assert PAPER_TABLES["rod_falling"]["meshodenet"][180] == pytest.approx(2.03e-4)
+    assert PAPER_TABLES["plate_cantilever"]["mgn"][350] == pytest.approx(354.18e-4)
 
 
 def test_rmse_is_defined_once_and_keeps_the_arithmetic_of_the_stored_numbers():

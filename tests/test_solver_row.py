@@ -163,7 +163,8 @@ def test_runner_records_without_training_reuses_and_tabulates(small_rod):
     md = (out / "rmse_at_step.md").read_text().splitlines()
     md_tables = md[:md.index(next(ln for ln in md if ln.startswith("## Long horizon")))]
     rows = [ln for ln in md_tables if ln.startswith("| solver_h |")]
-    assert len(rows) == 4  # two seeds, in the RMSE table and the increase table
+    # two seeds, in the RMSE table, the increase table and the paper's convention's table
+    assert len(rows) == 6
     assert md[md.index(rows[1]) + 1].startswith("| *no motion")  # beside the no-motion row
     runs_rows = [ln for ln in md if ln.startswith(f"| {specs[0].run_id} |")]
     per_traj = rec["rollout_wall_time_s"] / 2

@@ -41,6 +41,10 @@ def register(sub):
                         "data and runs directories (shared filesystem)")
     p.add_argument("--device", default="auto", help="auto (CUDA if present), cpu or cuda")
     p.add_argument("--no-figures", action="store_true")
+    p.add_argument("--tables-only", action="store_true",
+                   help="train nothing: rewrite RESULTS/SUITE/rmse_at_step.csv, .md and the "
+                        "RMSE-vs-step figures from its metrics.csv and runs.csv (a results "
+                        "directory brought up to this version's tables)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--compare-with", default=None, metavar="DIR",
                    help="afterwards compare rmse_at_step.csv with DIR/SUITE/rmse_at_step.csv")
@@ -70,7 +74,13 @@ def run(args):
             raise ValueError("--compare-with names the --results directory itself; results "
                              "would be compared with themselves")
     from benchmarks.suite.plugins import loaded_files
-    from benchmarks.suite.runner import run_suite
+    from benchmarks.suite.runner import rewrite_tables, run_suite
+
+    if args.tables_only:
+        paths = rewrite_tables(args.results, suite, data_dir=args.data_dir,
+                               figures=not args.no_figures)
+        print(paths["markdown"].read_text())
+        return 0
 
     res = run_suite(suite, results_dir=args.results, runs_dir=args.runs_dir,
                     data_dir=args.data_dir, seeds=args.seeds, only=args.only, jobs=args.jobs,

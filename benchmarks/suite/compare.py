@@ -3,7 +3,9 @@
 Rows are matched on their *key* columns; every other numeric column is a *value* compared
 with ``|new - old| <= atol + rtol * |old|`` (NaN equals NaN). Columns of provenance that
 legitimately differ between machines and runs (wall times, peak memory, git SHA, library
-versions, timestamps, device, threads, CPU and kernel settings) are ignored by default.
+versions, timestamps, device, threads, CPU and kernel settings) are ignored by default, and so
+are the paper-convention columns ``rmse_coord_*`` (a fixed multiple of ``rmse_*``: baselines
+written before they existed still compare).
 
 Keys default to the columns that are not floating point (ids, seeds, trajectory and step
 indices); pass ``keys`` to choose them. Exit codes of the command: 0 within tolerance,
@@ -20,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 DEFAULT_IGNORE = re.compile(
-    r"(wall|peak_mem|peak_rss|_time_s$|git_sha|timestamp|created|device|threads|hostname|"
+    r"(^rmse_coord_|wall|peak_mem|peak_rss|_time_s$|git_sha|timestamp|created|device|threads|hostname|"
     r"platform|^cpu_|^kernel_env$|^machine$|"
     r"version|^python$|^numpy$|^scipy$|^torch|^pandas$|^meshio$|^scikit.fem$)")
 
@@ -78,8 +80,12 @@ def compare(old: pd.DataFrame, new: pd.DataFrame, rtol: float = 1e-6, atol: floa
                                        and pd.api.types.is_float_dtype(old[c]))
     ignored = [c for c in old.columns if c in set(ignore)
                or (default_ignore and DEFAULT_IGNORE.search(c) and c not in (keys or ()))]
+    ignored_new = [c for c in new.columns if c not in old.columns and (
+        c in set(ignore) or (default_ignore and DEFAULT_IGNORE.search(c)
+                             and c not in (keys or ())))]
     missing_new = [c for c in old.columns if c not in new.columns and c not in ignored]
-    missing_old = [c for c in new.columns if c not in old.columns and c not in ignored]
+    missing_old = [c for c in new.columns if c not in old.columns and c not in ignored
+                   and c not in ignored_new]
     if missing_new or missing_old:
         raise CompareError(f"columns differ: missing from {names[1]}: {missing_new}; "
                            f"missing from {names[0]}: {missing_old}")

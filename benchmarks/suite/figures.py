@@ -59,6 +59,11 @@ def _color(model: str, i: int) -> str:
 
 
 def rmse_vs_step(metrics: pd.DataFrame, case: str, path: Path) -> Path:
+    """RMSE against step in the paper's convention (per coordinate: each trajectory's RMSE
+    over nodes and coordinates), the paper's Tables 1 and 2 as markers where the case is one of
+    its two."""
+    from benchmarks.suite.metrics import PAPER_TABLES, PER_COORDINATE
+
     plt = _plt()
     m = metrics[(metrics["case"] == case) & (metrics["metric"] == "rmse_at_step")
                 & (metrics["step"] > 0)]
@@ -66,16 +71,21 @@ def rmse_vs_step(metrics: pd.DataFrame, case: str, path: Path) -> Path:
     groups = ["model", "integrator", "grad_mode"]
     few = m.groupby(groups).ngroups <= 2  # model colours; otherwise one colour per line
     for i, (key, d) in enumerate(m.groupby(groups, sort=True)):
-        g = d.groupby("step")["rmse"]
+        g = (d["rmse"] * PER_COORDINATE).groupby(d["step"])
         mean, lo, hi = g.mean(), g.min(), g.max()
         label = _scheme_label(*key)
         c = _color(key[0], i) if few else f"C{i}"
         ax.plot(mean.index, mean.values, color=c, label=label)
         ax.fill_between(mean.index, lo.values, hi.values, color=c, alpha=0.2, lw=0)
+    for j, (model, row) in enumerate(sorted(PAPER_TABLES.get(case, {}).items())):
+        ax.plot(list(row), list(row.values()), ("D" if j == 0 else "s"), ms=6, mfc="none",
+                color=COLORS.get(model, "k"), ls="none",
+                label=f"{model}, the paper's table")
     ax.set_yscale("log")
     ax.set_xlabel("step (saved frame)")
-    ax.set_ylabel("position RMSE (m)")
-    ax.set_title(f"{case}: mean over test trajectories (band: min-max)")
+    ax.set_ylabel("position RMSE per coordinate (m)")
+    ax.set_title(f"{case}: mean over test trajectories (band: min-max)\n"
+                 "the paper's convention: root of the mean over nodes and x, y, z", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     return _save(fig, path)

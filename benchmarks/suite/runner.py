@@ -57,8 +57,11 @@ CSV_HEADERS = {
         "rmse_at_step.csv: the paper's table (Tables 1 and 2 of MeshODENet).",
         "rmse_mean / rmse_std (m): mean and population std over the test trajectories of the "
         "per-trajectory RMSE at `step` (sqrt of the mean over all nodes of the squared "
-        "Euclidean position error); increase_vs_meshodenet_pct: 100 (mean / MeshODENet's mean "
-        "- 1) for the same case, integrator-free keys and step."),
+        "Euclidean position error); rmse_coord_mean / rmse_coord_std (m): the same in the "
+        "paper's convention, per coordinate (sqrt of the mean over nodes and the 3 coordinates, "
+        "i.e. the per-trajectory RMSE / sqrt(3)), the one to set beside the paper's Tables 1 "
+        "and 2; increase_vs_meshodenet_pct: 100 (mean / MeshODENet's mean - 1) for the same "
+        "case, integrator-free keys and step."),
     "tolerance": (
         "tolerance.csv: relative tolerances of `meshbench run --compare-with` / `meshbench "
         "compare --tolerance`, from the spread of this suite's seeds (meshbench tolerance).",
@@ -460,15 +463,29 @@ def write_results(out: Path, records: list, runs_dir: Path, suite: Suite, *,
                   figures: bool = True, data_dir=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     metrics = pd.concat([_run_metrics(runs_dir, r) for r in records], ignore_index=True)
+    paths = {"runs": out / "runs.csv", "metrics": out / "metrics.csv"}
+    write_csv(paths["runs"], runs_table(records), "runs")
+    write_csv(paths["metrics"], metrics, "metrics")
+    steps, tests, more = _write_tables(out, metrics, records, suite, data_dir)
+    paths.update(more)
+    if figures:
+        from benchmarks.suite import animate as A
+        from benchmarks.suite import figures as F
+
+        paths["figures"] = (F.suite_figures(out / "figures", metrics, records, runs_dir,
+                                            steps, tests)
+                            + A.suite_animations(out / "figures", records, runs_dir, tests))
+    return paths
+
+
+def _write_tables(out: Path, metrics: pd.DataFrame, records: list, suite: Suite, data_dir):
+    """``rmse_at_step.csv`` and ``.md`` from the tidy metrics; returns the table steps per
+    case, the cases' test splits and the paths written."""
     at_step = metrics[metrics["metric"] == "rmse_at_step"]  # not the horizon's later steps
     steps = {c: M.table_steps(c, int(at_step.loc[at_step["case"] == c, "step"].max()) + 1)
              for c in metrics["case"].unique()}
-    table = M.rmse_at_step_table(
-        metrics[metrics["metric"] == "rmse_at_step"].drop(columns=["metric", "run"]), steps)
-    paths = {"runs": out / "runs.csv", "metrics": out / "metrics.csv",
-             "rmse_at_step": out / "rmse_at_step.csv", "markdown": out / "rmse_at_step.md"}
-    write_csv(paths["runs"], runs_table(records), "runs")
-    write_csv(paths["metrics"], metrics, "metrics")
+    table = M.rmse_at_step_table(at_step.drop(columns=["metric", "run"]), steps)
+    paths = {"rmse_at_step": out / "rmse_at_step.csv", "markdown": out / "rmse_at_step.md"}
     write_csv(paths["rmse_at_step"], table, "rmse_at_step")
     tests = {c: store.load_split(get_case(c), "test", data_dir) for c in metrics["case"].unique()}
     baseline = {}  # the trivial reference, shown in the markdown only
@@ -478,13 +495,34 @@ def write_results(out: Path, records: list, runs_dir: Path, suite: Suite, *,
                        M.full_rollout_rmse(M.no_motion(true), true))
     md = render_markdown(table, metrics, records, suite, baseline)
     store.atomic_write(paths["markdown"], lambda f: f.write(md), mode="w")
+    return steps, tests, paths
+
+
+def rewrite_tables(results_dir, suite: Suite, *, data_dir=None, figures: bool = True) -> dict:
+    """Rewrite ``RESULTS/SUITE/rmse_at_step.csv``, ``.md`` and the RMSE-vs-step figures from
+    the committed ``metrics.csv`` and ``runs.csv`` alone (no run directory, no training): a
+    results directory brought up to a newer meshbench's tables. ``metrics.csv`` and
+    ``runs.csv`` are not touched; the snapshots, loss curves and animations, which need the
+    runs' stored rollouts, stay as they are."""
+    out = Path(results_dir) / suite.name
+    files = {k: out / f"{k}.csv" for k in ("metrics", "runs")}
+    for f in files.values():
+        if not f.exists():
+            raise FileNotFoundError(f"{f}: no such file; --tables-only rewrites the tables of "
+                                    f"a results directory written by `meshbench run`")
+    metrics = pd.read_csv(files["metrics"], comment="#")
+    records = []
+    for rec in pd.read_csv(files["runs"], comment="#").to_dict("records"):
+        b = rec.get("best_epoch")
+        if isinstance(b, float) and b == b and b.is_integer():
+            rec["best_epoch"] = int(b)
+        records.append(rec)
+    steps, tests, paths = _write_tables(out, metrics, records, suite, data_dir)
     if figures:
-        from benchmarks.suite import animate as A
         from benchmarks.suite import figures as F
 
-        paths["figures"] = (F.suite_figures(out / "figures", metrics, records, runs_dir,
-                                            steps, tests)
-                            + A.suite_animations(out / "figures", records, runs_dir, tests))
+        paths["figures"] = [F.rmse_vs_step(metrics, c, out / "figures" / f"rmse_vs_step_{c}.png")
+                            for c in sorted(metrics["case"].unique())]
     return paths
 
 
@@ -504,6 +542,7 @@ def render_markdown(table: pd.DataFrame, metrics: pd.DataFrame, records: list,
              "at saved frame k, per test trajectory; mean ± std over test trajectories, in mm. "
              "Generated by `meshbench run`; see `rmse_at_step.csv`.", ""]
     keys = [c for c in table.columns if c not in ("case", "step", "rmse_mean", "rmse_std",
+                                                   "rmse_coord_mean", "rmse_coord_std",
                                                    "n_trajectories")
             and not c.startswith("increase_vs_")]
     inc = [c for c in table.columns if c.startswith("increase_vs_")][0]
@@ -537,6 +576,7 @@ def render_markdown(table: pd.DataFrame, metrics: pd.DataFrame, records: list,
             lines.append("| " + " | ".join(str(v) for v in kv) + " | "
                          + " | ".join(_fmt(d.loc[s, inc]) for s in steps) + " |")
         lines.append("")
+        lines += _paper_lines(case, dfc, keys, steps)
     lines += H.markdown_lines(metrics, keys)
     n_test = table.groupby("case")["n_trajectories"].max()
     lines += ["## Runs", "", "Rollout: wall time of the test rollout per test trajectory (the "
@@ -553,6 +593,29 @@ def render_markdown(table: pd.DataFrame, metrics: pd.DataFrame, records: list,
                      + f" | {r['rollout_wall_time_s'] / n_test.get(r['case'], 1):.3g} | "
                      f"{1e3 * r['test_rmse_m']:.3g} | {1e3 * r['test_no_motion_rmse_m']:.3g} |")
     return "\n".join(lines) + "\n"
+
+
+def _paper_lines(case: str, dfc: pd.DataFrame, keys: list, steps: list) -> list:
+    """The case's rows in the paper's convention (per coordinate, `rmse_coord_mean`) under the
+    paper's own rows, in the paper's unit (1e-4 m); nothing for a case the paper has no table
+    of or when the table lacks the column."""
+    paper = M.PAPER_TABLES.get(case)
+    if not paper or "rmse_coord_mean" not in dfc:
+        return []
+    lines = ["In the paper's convention (per coordinate: root of the mean over nodes and x, y, "
+             "z; `rmse_coord_mean`), mean over test trajectories, 1e-4 m, beside the paper's "
+             "table:", "",
+             "| " + " | ".join(keys) + " | " + " | ".join(f"step {s}" for s in steps) + " |",
+             "|" + "---|" * (len(keys) + len(steps))]
+    for model, row in sorted(paper.items()):
+        lines.append(f"| *{model}, the paper* |" + " |" * (len(keys) - 1) + " "
+                     + " | ".join(f"{1e4 * row[s]:.3g}" if s in row else "" for s in steps)
+                     + " |")
+    for kv, dfm in _row_groups(dfc, keys):
+        d = dfm.set_index("step")
+        lines.append("| " + " | ".join(str(v) for v in kv) + " | "
+                     + " | ".join(_fmt(1e4 * d.loc[s, "rmse_coord_mean"]) for s in steps) + " |")
+    return lines + [""]
 
 
 def _trainable(model: str) -> bool:
