@@ -282,7 +282,8 @@ def test_bench_section_times_the_model_against_the_solver(tiny_case, tmp_path):
     r = energy_bench(case.id, 1, "cpu", lines.append, root)
     for key in ("train_step_s", "single_per_trajectory_s", "batched_per_trajectory_s",
                 "solver_h_per_trajectory_s", "solver_per_trajectory_s"):
-        assert r[key] > 0, key
+        assert r[key] > 0 and r["reference"].get(key, 1) > 0, key
+    assert r["max_abs_diff_m"] < 2 * r["newton_tol_m"] and r["split_trajectories"] >= 1
     assert r["intervals"] == round(case.t_end / case.save_dt) and lines == [energy_line(case.id, r)]
     assert "skipped" in energy_bench(case.id, 1, "cpu", lines.append, tmp_path)
 
