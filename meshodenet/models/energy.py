@@ -15,8 +15,9 @@ Each saved interval ``h`` is one backward-Euler step, the minimisation
         + \frac{c_i}{2h} |x_i - x_{k,i}|^2 - f_i \cdot x_i + U_\theta(x),
     \qquad v_{k+1} = (x_{k+1} - x_k) / h,
 
-solved by Newton's method with the dense Hessian ``diag(m/h^2 + c/h) + d2U/dx2`` (symmetric;
-Cholesky, with an LU fallback). L-stable at any stiffness: the plate's ``omega h`` of 19-34 and
+solved by Newton's method with the Hessian ``diag(m/h^2 + c/h) + d2U/dx2`` (symmetric;
+Cholesky, with an LU fallback): banded, per trajectory, in rollouts without gradients
+(``SOLVERS``), dense otherwise. L-stable at any stiffness: the plate's ``omega h`` of 19-34 and
 the rod's drag rate ``c h / m`` of 2.6e5 cost nothing. Clamped nodes stay where they are.
 A planar mesh loaded in its plane (rest ``z`` constant, ``f_z = 0``) started in its plane stays
 there exactly (the energy is even in ``z``), so only the in-plane coordinates are solved for,
