@@ -28,8 +28,10 @@ log-stiffness per element type. The rest shape is stress free and every element 
 (``g > 0``; ``q`` of hinges is a square, so its derivative vanishes at rest). The MLP's last
 layer starts at zero (``g = 1``) and ``a_t`` at a least-squares fit of the training frames'
 momentum balance (``ImplicitEnergy._fit_log_stiffness``). The geometry's derivatives
-``dq/dx``, ``d2q/dx2`` are analytic for edges and dihedral hinges (``_edge_geometry``,
-``_dihedral_geometry``) and from ``torch.func`` for rod hinges.
+``dq/dx``, ``d2q/dx2`` are analytic (``_edge_geometry``, ``_hinge_geometry``,
+``_dihedral_geometry``; ``EnergySystem(analytic=False)`` takes the rod hinges' from
+``torch.func``, as before issue 38). ``BatchedEnergy`` evaluates the energy for a rollout's
+batched Newton solves: banded Hessian, one MLP pass for all element types.
 """
 
 from __future__ import annotations
@@ -168,6 +170,56 @@ def _edge_geometry(x, nodes, l0, second: bool):
     return q, dq, d2q
 
 
+#: ``y = (e, f) = (x_b - x_a, x_c - x_b) = D x`` of a rod hinge's nodes ``x = (x_a, x_b, x_c)``
+_D_HINGE = torch.cat([torch.cat([-torch.eye(3), torch.eye(3), torch.zeros(3, 3)], 1),
+                      torch.cat([torch.zeros(3, 3), -torch.eye(3), torch.eye(3)], 1)]).double()
+
+
+def _hinge_geometry(x, nodes, kap0, second: bool):
+    r"""``q = |delta|^2``, ``delta = kappa_b - kappa_{b,0}``, of rod hinges ``nodes (n, 3)`` at
+    ``x (B, N, 3)``, with ``dq = 2 delta^T dkappa`` ``(B, n, 9)`` and
+    ``d2q = 2 (dkappa^T dkappa + sum_c delta_c d2kappa_c)`` ``(B, n, 9, 9)``.
+
+    ``kappa = 2 w / d`` on ``y = (e, f)``, ``w = e x f``, ``d = |e| |f| + e . f``:
+    ``dw = (-[f]_x, [e]_x)``, ``dd = (|f| u + f, |e| v + e)`` (``u = e/|e|``, ``v = f/|f|``),
+    ``dkappa = 2 (dw - kappa/2 dd^T) / d``; ``d2w_c`` is ``eps_cij`` on ``(e_i, f_j)``, so
+    ``sum_c delta_c d2w_c`` has the blocks ``(e, f) = -[delta]_x``, ``(f, e) = [delta]_x``;
+    ``d2d``: ``(e, e) = |f| (I - u u^T) / |e|``, ``(f, f) = |e| (I - v v^T) / |f|``,
+    ``(e, f) = u v^T + I``. With ``a = dw^T delta`` and ``s = delta . w``:
+    ``sum_c delta_c d2kappa_c = 2 (sum_c delta_c d2w_c / d - (a dd^T + dd a^T) / d^2
+    - s d2d / d^2 + 2 s dd dd^T / d^3)``. On the nodes ``D^T (.)`` and ``D^T (.) D``
+    (``_D_HINGE``)."""
+    xe = x[:, nodes]                                                  # (B, n, 3, 3)
+    e, f = xe[..., 1, :] - xe[..., 0, :], xe[..., 2, :] - xe[..., 1, :]
+    le, lf = e.norm(dim=-1, keepdim=True), f.norm(dim=-1, keepdim=True)
+    w = torch.cross(e, f, dim=-1)
+    d = le * lf + (e * f).sum(-1, keepdim=True)                       # (B, n, 1)
+    kap = 2 * w / d
+    delta = kap - kap0
+    q = (delta * delta).sum(-1)
+    u, v = e / le, f / lf
+    dw = torch.cat([-_skew(f), _skew(e)], -1)                         # (B, n, 3, 6)
+    dd = torch.cat([lf * u + f, le * v + e], -1)                      # (B, n, 6)
+    dk = (2 * dw - kap[..., :, None] * dd[..., None, :]) / d[..., None]
+    D = _D_HINGE.to(x)
+    dq = (2 * (delta[..., None, :] @ dk)[..., 0, :]) @ D
+    if not second:
+        return q, dq, None
+    I = torch.eye(3, dtype=x.dtype, device=x.device).expand(*e.shape[:-1], 3, 3)
+    kd = _skew(delta)
+    Z = torch.zeros_like(I)
+    d2w = _blocks([[Z, -kd], [kd, Z]])
+    d2d = _blocks([[lf[..., None] * (I - _outer(u, u)) / le[..., None], _outer(u, v) + I],
+                   [_outer(v, u) + I, le[..., None] * (I - _outer(v, v)) / lf[..., None]]])
+    a = (delta[..., None, :] @ dw)[..., 0, :]                         # (B, n, 6)
+    s = (delta * w).sum(-1)[..., None, None]
+    d1, d2 = d[..., None], d[..., None] ** 2
+    sk = 2 * (d2w / d1 - (_outer(a, dd) + _outer(dd, a)) / d2 - s * d2d / d2
+              + 2 * s * _outer(dd, dd) / (d2 * d1))
+    d2q = 2 * (dk.transpose(-1, -2) @ dk + sk)
+    return q, dq, D.T @ d2q @ D
+
+
 def _skew(v):
     """``[v]_x (..., 3, 3)``, the matrix of ``w -> v x w``."""
     z = torch.zeros_like(v[..., 0])
@@ -181,7 +233,7 @@ def _outer(a, b):
 
 
 def _blocks(rows):
-    """A ``(..., 9, 9)`` matrix from 3 x 3 rows of ``(..., 3, 3)`` blocks."""
+    """A ``(..., 3r, 3r)`` matrix from ``r`` rows of ``r`` blocks ``(..., 3, 3)``."""
     return torch.cat([torch.cat(r, -1) for r in rows], -2)
 
 
@@ -301,12 +353,17 @@ class ElementEnergy(nn.Module):
         g = nn.functional.softplus(o) / ln2
         g1 = sg * do / ln2
         g2 = (sg * (1 - sg) * do**2 + sg * d2o) / ln2
-        c = yrel * torch.exp(self.log_stiffness)
-        q = qhat
-        if self.power == 2:
-            return (c * 0.5 * q**2 * g, c * (q * g + 0.5 * q**2 * g1),
-                    c * (g + 2 * q * g1 + 0.5 * q**2 * g2))
-        return c * 0.5 * q * g, c * 0.5 * (g + q * g1), c * (g1 + 0.5 * q * g2)
+        return _powered(self.power, yrel * torch.exp(self.log_stiffness), qhat, g, g1, g2)
+
+
+def _powered(power: int, c, q, g, g1=None, g2=None):
+    """``(U, dU/dq, d2U/dq2)`` of ``U = c/2 q^p g(q)`` (``p = power``, 1 or 2) from ``g`` and
+    its derivatives ``g1``, ``g2`` (a derivative is ``None`` where ``g``'s is)."""
+    if power == 2:
+        return (c * 0.5 * q**2 * g, None if g1 is None else c * (q * g + 0.5 * q**2 * g1),
+                None if g2 is None else c * (g + 2 * q * g1 + 0.5 * q**2 * g2))
+    return (c * 0.5 * q * g, None if g1 is None else c * 0.5 * (g + q * g1),
+            None if g2 is None else c * (g1 + 0.5 * q * g2))
 
 
 class EnergySystem:
@@ -318,8 +375,9 @@ class EnergySystem:
     parameters, and the network is evaluated on the scalars ``q`` only."""
 
     def __init__(self, terms: nn.ModuleDict, elems: dict, sigma: dict, youngs, ybar: float,
-                 ylog: tuple):
+                 ylog: tuple, analytic: bool = True):
         self.terms, self.elems, self.sigma = terms, elems, sigma
+        self.analytic = analytic  # rod hinges' geometry by hand (else torch.func, as before)
         y = youngs.to(torch.float64)
         self.yrel = y / ybar
         self.yhat = (torch.log(y) - ylog[0]) / ylog[1]
@@ -342,6 +400,9 @@ class EnergySystem:
                     continue
                 if kind == "dihedral":
                     out[kind] = _dihedral_geometry(x.detach(), nodes, rest, second)
+                    continue
+                if self.analytic:
+                    out[kind] = _hinge_geometry(x.detach(), nodes, rest, second)
                     continue
                 xe = x.detach()[:, nodes].reshape(-1, 3 * k)
                 r = rest.repeat(self.B, 1)
@@ -412,3 +473,145 @@ class EnergySystem:
             flat = (dof[:, :, None] * n + dof[:, None, :]).reshape(-1)
             H.index_add_(1, flat[keep], he.reshape(B, -1)[:, keep])
         return H.reshape(B, n, n)
+
+
+def band_order(pairs: np.ndarray, n: int) -> np.ndarray:
+    """A reverse Cuthill-McKee order ``(n,)`` (new position -> old index) of ``n`` unknowns
+    coupled by the index pairs ``pairs (m, 2)``: it makes their matrix banded and narrow."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    i, j = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
+    graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
+    return np.asarray(reverse_cuthill_mckee(graph, symmetric_mode=True), np.int64)
+
+
+#: ``(q, dq, d2q)`` of each element type (``geometry``'s analytic functions)
+_GEOMETRY = {"edge": lambda x, nodes, rest, l0, second: _edge_geometry(x, nodes, l0, second),
+             "hinge": lambda x, nodes, rest, l0, second: _hinge_geometry(x, nodes, rest, second),
+             "dihedral": lambda x, nodes, rest, l0, second: _dihedral_geometry(x, nodes, rest,
+                                                                              second)}
+
+
+class BatchedEnergy:
+    """The energy of an ``EnergySystem`` on the ``n`` unknowns of a rollout's Newton solves,
+    for any subset of its batch of ``B`` trajectories, without an autograd graph.
+
+    The unknowns are the coordinates ``act`` of the free nodes, reordered (``band_order``) so
+    that the Hessian is banded: ``unknowns (n,)`` are the flat coordinates ``3 node + axis`` in
+    that order, ``width`` the number of sub-diagonals. ``evaluate`` gives the energy, its
+    gradient and its Hessian in LAPACK's lower band storage (``ab[i - j, j] = H[i, j]``,
+    ``i >= j``) from one MLP pass for all element types (their MLPs stacked along a leading
+    axis and applied with ``torch.bmm``, the input layer's part from the static features and
+    the modulus computed once here)."""
+
+    def __init__(self, sys: EnergySystem, act: torch.Tensor, n_nodes: int):
+        self.sys, self.kinds = sys, list(sys.elems)
+        dev, n = act.device, len(act)
+        where = torch.full((3 * n_nodes,), -1, dtype=torch.long, device=dev)
+        where[act] = torch.arange(n, device=dev)
+        dofs = {k: where[sys._dofs(k, n_nodes)] for k in self.kinds}   # -1: not an unknown
+        pairs = torch.cat([torch.stack(torch.broadcast_tensors(d[:, :, None], d[:, None, :]),
+                                       -1).reshape(-1, 2) for d in dofs.values()])
+        perm = band_order(pairs[(pairs >= 0).all(1)].cpu().numpy(), n)
+        rank = np.full(n + 1, -1, np.int64)  # old index -> new position; rank[-1] = -1
+        rank[perm] = np.arange(n)
+        self.unknowns = act[torch.as_tensor(perm, device=dev)]
+        self.n, self.width, self.maps = n, 0, {}
+        for k, d in dofs.items():
+            s = torch.as_tensor(rank, device=dev)[d]                     # (n_e, 3k)
+            a, b = (z.reshape(-1) for z in torch.broadcast_tensors(s[:, :, None], s[:, None, :]))
+            g_at = torch.nonzero(s.reshape(-1) >= 0)[:, 0]
+            h_at = torch.nonzero((b >= 0) & (a >= b))[:, 0]
+            self.width = max(self.width, int((a - b)[h_at].max()) if len(h_at) else 0)
+            self.maps[k] = (g_at, s.reshape(-1)[g_at], h_at, ((a - b) * n + b)[h_at])
+        self._stack_mlps()
+
+    @torch.no_grad()
+    def _stack_mlps(self) -> None:
+        sys, kinds = self.sys, self.kinds
+        lins = [[m for m in sys.terms[k].mlp if isinstance(m, nn.Linear)] for k in kinds]
+        self.counts = [len(sys.elems[k][0]) for k in kinds]
+        nmax = max(self.counts)
+        w0 = torch.stack([li[0].weight for li in lins])                 # (T, h, 2 + N_STATIC)
+        static = w0.new_zeros(len(kinds), nmax, N_STATIC)
+        for t, k in enumerate(kinds):
+            static[t, :self.counts[t]] = sys.elems[k][1]
+        c1 = static @ w0[..., 1:1 + N_STATIC].transpose(1, 2) \
+            + torch.stack([li[0].bias for li in lins])[:, None]           # (T, nmax, h)
+        # features first, elements last: (h, h) @ (h, M) is about twice as fast as
+        # (M, h) @ (h, h) with MKL here
+        #: the input layer without ``qhat``: (T, h, B, nmax)
+        self.c1 = (c1[:, None] + sys.yhat[None, :, None, None] * w0[:, None, None, :, -1]) \
+            .permute(0, 3, 1, 2).contiguous()
+        self.w0q = w0[..., 0]                                            # (T, h)
+        self.layers = [(torch.stack([li[j].weight for li in lins]),
+                        torch.stack([li[j].bias for li in lins])[..., None])
+                       for j in range(1, len(lins[0]))]
+        self.coef = torch.stack([sys.yrel * torch.exp(sys.terms[k].log_stiffness)
+                                 for k in kinds])                        # (T, B)
+        self.sigma = [float(sys.sigma[k]) for k in kinds]
+
+    def _mlp(self, qhat, idx, order: int):
+        """``(g, g', g'')`` of all types' elements ``(T, b, nmax)`` at ``qhat (T, b, nmax)``
+        (derivatives in ``qhat``, forward mode as ``ElementEnergy.taylor``; ``None`` above
+        ``order``)."""
+        T, b, nmax = qhat.shape
+        c1 = self.c1 if b == self.c1.shape[2] else self.c1[:, :, idx]  # idx: all or a subset
+        z = torch.addcmul(c1, qhat[:, None], self.w0q[..., None, None])
+        z = z.reshape(T, -1, b * nmax)                                   # (T, h, M)
+        dz, d2z = self.w0q[..., None].expand_as(z), None
+        for w, bias in self.layers:  # SiLU, then the next linear layer
+            # fused kernels: silu_backward(u, z) = u silu'(z), sigmoid_backward(u, s) = u s (1 - s)
+            if order > 1:
+                sg = torch.sigmoid(z)
+                a2 = torch.ops.aten.sigmoid_backward(2 + z * (1 - 2 * sg), sg) * dz**2
+                d2z = a2 if d2z is None else a2 + torch.ops.aten.silu_backward(d2z, z)
+            if order > 0:
+                dz = torch.ops.aten.silu_backward(dz, z)
+            z = torch.baddbmm(bias, w, nn.functional.silu(z))
+            dz = torch.bmm(w, dz) if order > 0 else None
+            d2z = torch.bmm(w, d2z) if d2z is not None else None
+        o = z.reshape(T, b, nmax)
+        ln2 = math.log(2.0)
+        g = nn.functional.softplus(o) / ln2
+        if order == 0:
+            return g, None, None
+        sg, do = torch.sigmoid(o), dz.expand(T, 1, b * nmax).reshape(T, b, nmax)
+        g1 = sg * do / ln2
+        if order == 1:
+            return g, g1, None
+        d2o = torch.zeros_like(o) if d2z is None else d2z.reshape(T, b, nmax)
+        return g, g1, (sg * (1 - sg) * do**2 + sg * d2o) / ln2
+
+    @torch.no_grad()
+    def evaluate(self, x: torch.Tensor, idx: torch.Tensor, order: int):
+        """``(U (b,), dU (b, n) or None, ab (b, width + 1, n) or None)``: the energy, with
+        ``order`` 1 its gradient on the unknowns, with 2 also its Hessian (band storage), at
+        positions ``x (b, N, 3)`` (float64, m) of the trajectories ``idx (b,)`` of the batch."""
+        b, n, T = len(x), self.n, len(self.kinds)
+        geo = {k: _GEOMETRY[k](x, nodes, rest, l0, order > 1) if order else
+               (measure(k, x[:, nodes], rest, l0), None, None)
+               for k, (nodes, _, rest, l0) in self.sys.elems.items()}
+        qhat = x.new_zeros(T, b, max(self.counts))
+        for t, k in enumerate(self.kinds):
+            qhat[t, :, :self.counts[t]] = geo[k][0] / self.sigma[t]
+        gs = self._mlp(qhat, idx, order)
+        U = x.new_zeros(b)
+        dU = x.new_zeros(b, n) if order else None
+        ab = x.new_zeros(b, (self.width + 1) * n) if order > 1 else None
+        for t, k in enumerate(self.kinds):
+            m, sig = self.counts[t], self.sigma[t]
+            u, d1, d2 = _powered(POWER[k], self.coef[t, idx, None], qhat[t, :, :m],
+                                 *(None if g is None else g[t, :, :m] for g in gs))
+            U += u.sum(1)
+            if not order:
+                continue
+            _, dq, d2q = geo[k]
+            g_at, g_to, h_at, h_to = self.maps[k]
+            dU.index_add_(1, g_to, (d1[..., None] / sig * dq).reshape(b, -1)[:, g_at])
+            if order > 1:
+                he = (d2 / sig**2)[..., None, None] * dq[..., :, None] * dq[..., None, :] \
+                    + (d1 / sig)[..., None, None] * d2q
+                ab.index_add_(1, h_to, he.reshape(b, -1)[:, h_at])
+        return U, dU, None if ab is None else ab.reshape(b, self.width + 1, n)

@@ -282,6 +282,108 @@ def test_bench_section_times_the_model_against_the_solver(tiny_case, tmp_path):
     r = energy_bench(case.id, 1, "cpu", lines.append, root)
     for key in ("train_step_s", "single_per_trajectory_s", "batched_per_trajectory_s",
                 "solver_h_per_trajectory_s", "solver_per_trajectory_s"):
-        assert r[key] > 0, key
+        assert r[key] > 0 and r["reference"].get(key, 1) > 0, key
+    assert r["max_abs_diff_m"] < 2 * r["newton_tol_m"] and r["split_trajectories"] >= 1
     assert r["intervals"] == round(case.t_end / case.save_dt) and lines == [energy_line(case.id, r)]
     assert "skipped" in energy_bench(case.id, 1, "cpu", lines.append, tmp_path)
+
+
+# --- issue 38: the rod hinges' derivatives by hand, the batched solver ------------------------
+def _random_rod_hinges(n: int, seed: int = 0):
+    """``n`` random, strongly bent node triples (turning angles up to about 2.5 rad) with
+    random rest curvatures: ``(x (1, 3n, 3), nodes (n, 3), kappa_0 (n, 3))``."""
+    g = torch.Generator().manual_seed(seed)
+    F64 = dict(dtype=torch.float64)
+    a = torch.randn(n, 3, generator=g, **F64)
+    e = torch.randn(n, 3, generator=g, **F64)
+    f = -e + 1.5 * torch.randn(n, 3, generator=g, **F64)  # far from straight, not folded back
+    x = torch.stack([a, a + e, a + e + f], 1).reshape(1, -1, 3)
+    return x, torch.arange(3 * n).reshape(n, 3), 0.5 * torch.randn(n, 3, generator=g, **F64)
+
+
+def test_rod_hinge_derivatives_match_finite_differences_and_autograd():
+    """``dq/dx`` and ``d2q/dx2`` of ``q = |kappa - kappa_0|^2``: analytic (``_hinge_geometry``)
+    against central differences of ``q`` and of the analytic gradient (h = 1e-6) and against
+    ``torch.func`` (the derivatives before issue 38), on 64 random bent hinges."""
+    from torch.func import hessian, jacrev, vmap
+
+    from meshodenet.energy import _hinge_geometry
+
+    x, nodes, kap0 = _random_rod_hinges(64)
+    q, dq, d2q = _hinge_geometry(x, nodes, kap0, second=True)
+    assert torch.allclose(q[0], measure("hinge", x[0, nodes], kap0, None), rtol=1e-14)
+
+    def f(z, r):
+        return measure("hinge", z.reshape(3, 3), r, None)
+
+    xe = x[0, nodes].reshape(-1, 9)
+    for got, want in ((dq[0], vmap(jacrev(f))(xe, kap0)), (d2q[0], vmap(hessian(f))(xe, kap0))):
+        err = float((got - want).abs().max() / want.abs().max())
+        assert err < 1e-13, err
+    eps, fd_g, fd_h = 1e-6, torch.empty_like(dq), torch.empty_like(d2q)
+    for i in range(9):
+        dx = torch.zeros_like(xe)
+        dx[:, i] = eps
+        plus, minus = (xe + dx).reshape(1, -1, 3), (xe - dx).reshape(1, -1, 3)
+        qp, gp, _ = _hinge_geometry(plus, nodes, kap0, second=False)
+        qm, gm, _ = _hinge_geometry(minus, nodes, kap0, second=False)
+        fd_g[..., i] = (qp - qm) / (2 * eps)
+        fd_h[..., i] = (gp - gm) / (2 * eps)
+    err_g = float(((fd_g - dq).norm(dim=-1) / dq.norm(dim=-1)).max())
+    err_h = float(((fd_h - d2q).flatten(2).norm(dim=-1) / d2q.flatten(2).norm(dim=-1)).max())
+    print(f"rod hinge dq: max relative error {err_g:.2e}; d2q: {err_h:.2e}")
+    assert err_g < 1e-7 and err_h < 1e-7
+    assert torch.allclose(d2q, d2q.transpose(-1, -2), rtol=0, atol=1e-12 * float(d2q.abs().max()))
+
+
+@pytest.mark.parametrize("make", [rod_arrays, strip_arrays])
+def test_batched_energy_equals_the_assembled_energy(make):
+    """``BatchedEnergy.evaluate`` (one stacked MLP pass, band storage, a subset of the batch)
+    equals ``EnergySystem``'s energy, gradient and dense Hessian on the unknowns."""
+    from meshodenet.energy import BatchedEnergy
+
+    arrays = make()
+    model, tr = _model(arrays)
+    sys = model.system(torch.cat([tr.youngs, 1.5 * tr.youngs])[:3])
+    x = _perturbed(arrays).repeat(2, 1, 1)[:3]
+    x[2] = x[2] + 0.003 * torch.randn_like(x[2])
+    act = model._active(x, torch.zeros_like(x))
+    be = BatchedEnergy(sys, act, model.mesh.n_nodes)
+    assert sorted(be.unknowns.tolist()) == sorted(act.tolist())
+    idx = torch.tensor([0, 2])
+    U, dU, ab = be.evaluate(x[idx], idx, 2)
+    H = sys.hessian(x)[idx][:, be.unknowns][:, :, be.unknowns]
+    n, w = be.n, be.width
+    band = torch.zeros_like(H)
+    for k in range(w + 1):
+        i = torch.arange(n - k)
+        band[:, i + k, i] = band[:, i, i + k] = ab[:, k, :n - k]
+    assert torch.allclose(U, sys.energy(x)[idx], rtol=1e-12)
+    g = sys.gradient(x).reshape(3, -1)[idx][:, be.unknowns]
+    assert torch.allclose(dU, g, rtol=1e-12, atol=1e-12 * float(g.abs().max()))
+    assert torch.allclose(band, H, rtol=1e-12, atol=1e-12 * float(H.abs().max()))
+    assert be.evaluate(x[idx], idx, 0)[1] is None and be.evaluate(x[idx], idx, 1)[2] is None
+    assert torch.allclose(be.evaluate(x[idx], idx, 0)[0], U, rtol=1e-12)
+
+
+@pytest.mark.parametrize("make", [rod_arrays, strip_arrays])
+def test_batched_solver_agrees_with_the_reference_within_newton_tolerance(make):
+    """``solver = batched`` (per-trajectory Newton, banded Cholesky, converged trajectories
+    dropping out) and ``reference`` roll out the same positions to Newton's tolerance; a
+    trajectory's rollout does not depend on the batch it is rolled out in."""
+    arrays = make()
+    model, tr = _model(arrays)
+    tol = model.config.newton_rtol * model.length
+    args = (tr.pos[:, 0], tr.vel[:, 0], tr.youngs, tr.t)
+    with torch.no_grad():
+        model.solver = "reference"
+        ref, _ = model.rollout(*args)
+        model.solver = "batched"
+        got, _ = model.rollout(*args)
+        alone, _ = model.rollout(*(a[1:2] for a in args[:3]), tr.t)
+    print(f"batched - reference: max {float((got - ref).abs().max()):.2e} m (tol {tol:.1e} m)")
+    assert float((got - ref).abs().max()) < 2 * tol
+    assert torch.allclose(alone[0], got[1], rtol=0, atol=1e-3 * tol)
+    model.solver = "dense"
+    with pytest.raises(ValueError, match="solver must be one of batched, reference"):
+        model.rollout(*args)

@@ -71,6 +71,10 @@ def _engine_arguments(e) -> None:
     e.add_argument("--no-mgn", action="store_true", help="skip MeshGraphNet")
     e.add_argument("--no-energy", action="store_true",
                    help="skip Implicit-Energy's cost against the solver")
+    e.add_argument("--energy-only", action="store_true",
+                   help="only Implicit-Energy's cost against the solver (section energy)")
+    e.add_argument("--energy-rounds", type=int, default=2,
+                   help="interleaved rounds of the energy section (default 2)")
     e.add_argument("--json", default=None, help="write the results to this JSON file")
     e.add_argument("--compare", default=None, metavar="BASELINE.json",
                    help="print ratios against a JSON written by --json")
@@ -148,7 +152,8 @@ def run_engine(args):
     regimes = split(args.regimes, eb.REGIMES, "regimes")
     impls = split(args.impl, ("current", "reference", "handwritten", "fast", eb.AUTHORS), "impl")
     epoch_cases = split(args.epoch_cases, eb.PAPER_CASES, "epoch-cases")
-    for name in ("threads", "rounds", "train_intervals", "epoch_steps", "solver_trajectories"):
+    for name in ("threads", "rounds", "train_intervals", "epoch_steps", "solver_trajectories",
+                 "energy_rounds"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got "
                              f"{getattr(args, name)}")
@@ -169,12 +174,17 @@ def run_engine(args):
     dev = pick_device(args.device)
     if dev.type != "cpu" and eb.AUTHORS in impls:
         raise ValueError(f"--impl {eb.AUTHORS} runs on the CPU only; use --device cpu for it")
-    res = eb.run_bench(graphs, regimes, impls, threads=args.threads, rounds=args.rounds,
-                       budget_s=args.budget, train_intervals=args.train_intervals,
-                       epoch_steps=args.epoch_steps, memory=not args.no_memory,
-                       epochs=not args.no_epoch, solver=not args.no_solver,
-                       solver_trajectories=args.solver_trajectories, mgn=not args.no_mgn,
-                       energy=not args.no_energy,
+    only = args.energy_only
+    if only and args.no_energy:
+        raise ValueError("--energy-only and --no-energy exclude each other; drop one")
+    res = eb.run_bench([] if only else graphs, regimes, impls, threads=args.threads,
+                       rounds=args.rounds, budget_s=args.budget,
+                       train_intervals=args.train_intervals, epoch_steps=args.epoch_steps,
+                       memory=not args.no_memory, epochs=not (args.no_epoch or only),
+                       solver=not (args.no_solver or only),
+                       solver_trajectories=args.solver_trajectories,
+                       mgn=not (args.no_mgn or only), energy=not args.no_energy,
+                       energy_rounds=args.energy_rounds,
                        log=lambda m: print(m, flush=True), device=dev, epoch_cases=epoch_cases)
     print("(shared machine: compare implementations measured in the same run)")
     if args.json:

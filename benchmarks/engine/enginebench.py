@@ -374,7 +374,8 @@ def _spawn(fn, *args):
 
 def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, train_intervals=20,
               epoch_steps=2, memory=True, epochs=True, solver=True, solver_trajectories=2,
-              mgn=True, log=print, device="cpu", epoch_cases=PAPER_CASES, energy=True) -> dict:
+              mgn=True, log=print, device="cpu", epoch_cases=PAPER_CASES, energy=True,
+              energy_rounds=2) -> dict:
     """Every section of the module docstring on ``device``; the result as a JSON-able dict."""
     import torch
 
@@ -465,7 +466,8 @@ def run_bench(graphs, regimes, impls, *, threads=1, rounds=5, budget_s=0.3, trai
     if energy:
         from benchmarks.engine.energybench import energy_bench
 
-        out["energy"] = {c: energy_bench(c, solver_trajectories, dev, log) for c in PAPER_CASES}
+        out["energy"] = {c: energy_bench(c, solver_trajectories, dev, log, rounds=energy_rounds)
+                         for c in PAPER_CASES}
     out["finished"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     return out
 

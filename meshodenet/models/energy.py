@@ -15,8 +15,9 @@ Each saved interval ``h`` is one backward-Euler step, the minimisation
         + \frac{c_i}{2h} |x_i - x_{k,i}|^2 - f_i \cdot x_i + U_\theta(x),
     \qquad v_{k+1} = (x_{k+1} - x_k) / h,
 
-solved by Newton's method with the dense Hessian ``diag(m/h^2 + c/h) + d2U/dx2`` (symmetric;
-Cholesky, with an LU fallback). L-stable at any stiffness: the plate's ``omega h`` of 19-34 and
+solved by Newton's method with the Hessian ``diag(m/h^2 + c/h) + d2U/dx2`` (symmetric;
+Cholesky, with an LU fallback): banded, per trajectory, in rollouts without gradients
+(``SOLVERS``), dense otherwise. L-stable at any stiffness: the plate's ``omega h`` of 19-34 and
 the rod's drag rate ``c h / m`` of 2.6e5 cost nothing. Clamped nodes stay where they are.
 A planar mesh loaded in its plane (rest ``z`` constant, ``f_z = 0``) started in its plane stays
 there exactly (the energy is even in ``z``), so only the in-plane coordinates are solved for,
@@ -43,10 +44,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.linalg import lapack
 from torch import nn
 
 from meshodenet.data import Mesh, Trajectories
-from meshodenet.energy import TYPES, ElementEnergy, EnergySystem, measure, static_features
+from meshodenet.energy import TYPES, BatchedEnergy, ElementEnergy, EnergySystem, measure, static_features
 from meshodenet.implicit import NewtonError
 from meshodenet.interface import TrajectoryModel
 from meshodenet.models.common import check_int, check_nonnegative, preset_configs
@@ -74,12 +76,27 @@ class EnergyConfig:
             raise ValueError(f"EnergyConfig.newton_rtol must be > 0, got {self.newton_rtol!r}")
 
 
+#: How a rollout without gradients solves its steps (``ImplicitEnergy.solver``):
+SOLVERS = {
+    # each trajectory its own Newton (its own chord and line-search decisions), all of the
+    # batch's in one pass per iteration, converged trajectories dropping out; banded
+    # Cholesky in a reverse Cuthill-McKee order; the rod hinges' derivatives by hand
+    "batched": "per-trajectory Newton, banded Cholesky, one MLP pass for all elements",
+    # the solver before issue 38: one Newton for the whole batch (it stops when the last
+    # trajectory converges), dense Cholesky, rod hinges by torch.func
+    "reference": "one Newton for the batch, dense Cholesky, torch.func rod hinges",
+}
+
+
 class ImplicitEnergy(TrajectoryModel):
-    """See the module docstring. Shapes as ``TrajectoryModel``."""
+    """See the module docstring. Shapes as ``TrajectoryModel``. ``solver`` (an attribute, a
+    key of ``SOLVERS``, default ``batched``) chooses how rollouts without gradients step;
+    rollouts with gradients and training always take the reference steps."""
 
     name = "implicit_energy"
     integrator_id = "backward_euler"
     grad_mode_id = "implicit"
+    solver = "batched"
 
     def __init__(self, mesh: Mesh, config: EnergyConfig, train: Trajectories | None = None):
         super().__init__(mesh, config)
@@ -127,7 +144,8 @@ class ImplicitEnergy(TrajectoryModel):
         s = self.ystats
         return EnergySystem(self.terms, self._elems(),
                             {k: getattr(self, f"{k}_sigma") for k in self.kinds},
-                            youngs, float(s[0]), (float(s[1]), float(s[2])))
+                            youngs, float(s[0]), (float(s[1]), float(s[2])),
+                            analytic=self.solver != "reference")
 
     def _active(self, x0, v0) -> torch.Tensor:
         """Indices into the ``3N`` coordinates that Newton solves for."""
@@ -257,20 +275,157 @@ class ImplicitEnergy(TrajectoryModel):
 
     # --- rollouts -----------------------------------------------------------------------------
     def rollout(self, x0, v0, youngs, t):
+        if self.solver not in SOLVERS:
+            raise ValueError(f"ImplicitEnergy.solver must be one of {', '.join(SOLVERS)}, got "
+                             f"{self.solver!r}")
         dtype = x0.dtype
         x = x0.to(torch.float64)
         v = v0.to(torch.float64) * self.free[:, None]
         t = t.to(torch.float64)
         sys = self.system(youngs)
         act = self._active(x, v)
+        if self.solver == "batched" and not torch.is_grad_enabled():
+            unknowns = BatchedEnergy(sys, act, self.mesh.n_nodes)
+            step = lambda x, v, h, where: self._newton_batched(unknowns, x, v, h, where)  # noqa: E731
+        else:
+            step = lambda x, v, h, where: self.step(sys, x, v, h, act, where)  # noqa: E731
         pos, vel = [x], [v]
         for k in range(len(t) - 1):
             h = float(t[k + 1] - t[k])
-            xn = self.step(sys, x, v, h, act, f"interval {k} (t = {float(t[k]):.4g} s)")
+            xn = step(x, v, h, f"interval {k} (t = {float(t[k]):.4g} s)")
             v, x = (xn - x) / h, xn
             pos.append(x)
             vel.append(v)
         return torch.stack(pos, 1).to(dtype), torch.stack(vel, 1).to(dtype)
+
+    # --- the batched solver (rollouts without gradients) --------------------------------------
+    @torch.no_grad()
+    def _newton_batched(self, be: BatchedEnergy, xk, vk, h, where: str):
+        """``x_{k+1} (B, N, 3)`` of every trajectory by its own Newton (as ``_newton`` with
+        ``chord``: its own factorisation, chord and line-search decisions), the batch's
+        energies evaluated together and converged trajectories dropping out. Works on the
+        unknowns ``be.unknowns`` (banded order), the objective relative to ``x_k`` (the
+        constant ``f . x_k`` and the fixed coordinates left out)."""
+        B = len(xk)
+        cols = be.unknowns
+        xkf = xk.reshape(B, -1)
+        yk, hv = xkf[:, cols], h * vk.reshape(B, -1)[:, cols]
+        node = cols // 3
+        mh, ch, f = (self.mass / h**2)[node], (self.damping / h)[node], self.force.reshape(-1)[cols]
+
+        def evaluate(y, idx, order):
+            """``(phi, r, ab)`` of the trajectories ``idx`` at unknowns ``y``."""
+            x = xkf[idx].clone()
+            x[:, cols] = y
+            U, dU, ab = be.evaluate(x.reshape(len(idx), -1, 3), idx, order)
+            d = y - yk[idx]
+            a = d - hv[idx]
+            phi = 0.5 * (mh * a * a + ch * d * d).sum(1) - (f * d).sum(1) + U
+            r = None if dU is None else mh * a + ch * d - f + dU
+            if ab is not None:
+                ab[:, 0] += mh + ch
+            return phi, r, ab
+
+        tol = self.config.newton_rtol * self.length
+        idx = torch.arange(B, device=xk.device)
+        y = yk + hv
+        phi, r, ab = evaluate(y, idx, 2)
+        facs = [self._band_factor(a) for a in ab.cpu().numpy()]
+        prev = torch.full((B,), math.inf, dtype=y.dtype, device=y.device)
+        out = torch.empty_like(y)
+        for done in range(1, self.config.newton_max_iter + 1):
+            dx = self._band_solve(facs, r)
+            step = dx.abs().amax(1)
+            if not bool(torch.isfinite(step).all()):
+                break
+            conv = step <= tol
+            out[idx[conv]] = y[conv] + dx[conv]
+            live = torch.nonzero(~conv)[:, 0]
+            if not len(live):
+                xn = xkf.clone()
+                xn[:, cols] = out
+                return xn.reshape(xk.shape)
+            if done == self.config.newton_max_iter:
+                break
+            idx, y, dx, r, phi, step = idx[live], y[live], dx[live], r[live], phi[live], step[live]
+            facs = [facs[int(j)] for j in live]
+            refactor = step > prev[live] / 3
+            prev = step
+            y, phi, r, ab = self._search(evaluate, idx, y, dx, r, phi,
+                                         2 if bool(refactor.any()) else 1)
+            for j in torch.nonzero(refactor)[:, 0].tolist():
+                facs[j] = self._band_factor(ab[j].cpu().numpy())
+        worst = int(torch.nan_to_num(step, nan=math.inf).argmax())
+        raise NewtonError(f"implicit_energy: Newton did not converge at {where}, h = {h:.4g} s, "
+                          f"trajectory {int(idx[worst])} of the batch: last step "
+                          f"{float(step[worst]):.3g} m > {tol:.3g} m after {done} iterations "
+                          f"(largest residual {float(r[worst].abs().max()):.3g} N)")
+
+    @staticmethod
+    def _search(evaluate, idx, y, dx, r, phi, order: int, halvings: int = 12):
+        """``(y, phi, r, ab)`` at ``y + alpha dx`` per trajectory, ``alpha`` halved from 1
+        until the objective decreases (Armijo), the full step where none does: as
+        ``_line_search``, the trial steps after the first on the energy alone and only for the
+        trajectories still searching."""
+        trial = y + dx
+        phi_t, r_t, ab_t = evaluate(trial, idx, order)
+        slope = (r * dx).sum(1)
+        ok = phi_t <= phi + 1e-4 * slope
+        if bool(ok.all()):
+            return trial, phi_t, r_t, ab_t
+        left = torch.nonzero(~ok)[:, 0]
+        alpha = torch.ones(len(left), dtype=y.dtype, device=y.device)
+        found = torch.zeros(len(left), dtype=torch.bool, device=y.device)
+        for _ in range(halvings - 1):
+            alpha = torch.where(found, alpha, alpha / 2)
+            s = torch.nonzero(~found)[:, 0]
+            j = left[s]
+            p, _, _ = evaluate(y[j] + alpha[s, None] * dx[j], idx[j], 0)
+            found[s] = p <= phi[j] + 1e-4 * alpha[s] * slope[j]
+            if bool(found.all()):
+                break
+        j = left[found]
+        if len(j):
+            a = alpha[found, None]
+            trial[j] = y[j] + a * dx[j]
+            p, rr, aa = evaluate(trial[j], idx[j], order)
+            phi_t[j], r_t[j] = p, rr
+            if ab_t is not None:
+                ab_t[j] = aa
+        return trial, phi_t, r_t, ab_t
+
+    def _band_factor(self, ab: np.ndarray):
+        """A factorisation of the symmetric matrix in lower band storage ``ab (w + 1, n)``:
+        LAPACK's banded Cholesky (``dpbtrf``); where it is not positive definite, ``_factor``'s
+        on the dense matrix (its LU, kept with the matrix for the convexified Cholesky)."""
+        c, info = lapack.dpbtrf(ab, lower=1)
+        if info == 0:
+            return "band", c
+        w, n = ab.shape
+        A = np.zeros((n, n))
+        for k in range(w):
+            i = np.arange(n - k)
+            A[i + k, i] = A[i, i + k] = ab[k, :n - k]
+        A = torch.as_tensor(A)[None]
+        return "dense", self._factor(A), A
+
+    def _band_solve(self, facs: list, r: torch.Tensor) -> torch.Tensor:
+        """The Newton steps ``-A^{-1} r`` ``(b, n)`` of the factorised matrices ``facs`` (one
+        per row of ``r``); a dense LU step that is not a descent direction is replaced by the
+        convexified one (``_newton``)."""
+        rhs = (-r).cpu().numpy()
+        out = np.empty_like(rhs)
+        for j, fac in enumerate(facs):
+            if fac[0] == "band":
+                out[j] = lapack.dpbtrs(fac[1], rhs[j], lower=1)[0]
+                continue
+            b = torch.as_tensor(rhs[j])[None]
+            dx = self._substitute(fac[1], b)
+            if fac[1][0] == "lu" and float((b * dx).sum()) <= 0:
+                facs[j] = fac = ("dense", self._factor(fac[2], convexify=True), fac[2])
+                dx = self._substitute(fac[1], b)
+            out[j] = dx[0].numpy()
+        return torch.as_tensor(out).to(r)
 
     # --- statistics and initial stiffness (training split only) ------------------------------
     @torch.no_grad()
