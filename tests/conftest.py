@@ -108,3 +108,43 @@ def tiny_case(tmp_path_factory):
     generate(case, root, workers=1, progress=False)
     yield case, root
     CASES.pop(case.id, None)
+
+
+
+def check_geometry_derivatives(geometry, kind: str, x, nodes, rest, label: str,
+                               autograd_rtol: float, eps=1e-6) -> None:
+    """An element geometry's analytic ``q``, ``dq``, ``d2q`` (``geometry(x, nodes, rest,
+    second=True)``; elements of ``nodes.shape[1]`` nodes) against ``measure(kind, ...)``,
+    against ``torch.func`` (jacrev, hessian; largest error relative to the largest entry below
+    ``autograd_rtol``) and against central differences of ``q`` and of the analytic gradient
+    (step ``eps``; relative error per element below 1e-7); ``d2q`` symmetric."""
+    import torch
+    from torch.func import hessian, jacrev, vmap
+
+    from meshodenet.energy import measure
+
+    q, dq, d2q = geometry(x, nodes, rest, second=True)
+    k = nodes.shape[1]
+    assert torch.allclose(q[0], measure(kind, x[0, nodes], rest, None), rtol=1e-14)
+
+    def f(z, r):
+        return measure(kind, z.reshape(k, 3), r, None)
+
+    xe = x[0, nodes].reshape(-1, 3 * k)
+    for got, want in ((dq[0], vmap(jacrev(f))(xe, rest)), (d2q[0], vmap(hessian(f))(xe, rest))):
+        err = float((got - want).abs().max() / want.abs().max())
+        assert err < autograd_rtol, err
+    fd_g, fd_h = torch.empty_like(dq), torch.empty_like(d2q)
+    for i in range(3 * k):
+        dx = torch.zeros_like(xe)
+        dx[:, i] = eps
+        plus, minus = (xe + dx).reshape(1, -1, 3), (xe - dx).reshape(1, -1, 3)
+        qp, gp, _ = geometry(plus, nodes, rest, second=False)
+        qm, gm, _ = geometry(minus, nodes, rest, second=False)
+        fd_g[..., i] = (qp - qm) / (2 * eps)
+        fd_h[..., i] = (gp - gm) / (2 * eps)
+    assert torch.allclose(d2q, d2q.transpose(-1, -2), rtol=0, atol=1e-12 * float(d2q.abs().max()))
+    err_g = float(((fd_g - dq).norm(dim=-1) / dq.norm(dim=-1)).max())
+    err_h = float(((fd_h - d2q).flatten(2).norm(dim=-1) / d2q.flatten(2).norm(dim=-1)).max())
+    print(f"{label} dq: max relative error {err_g:.2e}; d2q: {err_h:.2e}")
+    assert err_g < 1e-7 and err_h < 1e-7

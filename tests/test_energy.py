@@ -15,7 +15,7 @@ from meshodenet.energy import measure
 from meshodenet.implicit import NewtonError
 from meshodenet.models.energy import EnergyConfig, ImplicitEnergy
 from meshodenet.registry import get_model_spec, load_model
-from tests.conftest import rod_arrays, strip_arrays
+from tests.conftest import check_geometry_derivatives, rod_arrays, strip_arrays
 
 
 def _model(arrays, seed=0, train=True, **cfg):
@@ -305,35 +305,10 @@ def test_rod_hinge_derivatives_match_finite_differences_and_autograd():
     """``dq/dx`` and ``d2q/dx2`` of ``q = |kappa - kappa_0|^2``: analytic (``_hinge_geometry``)
     against central differences of ``q`` and of the analytic gradient (h = 1e-6) and against
     ``torch.func`` (the derivatives before issue 38), on 64 random bent hinges."""
-    from torch.func import hessian, jacrev, vmap
-
     from meshodenet.energy import _hinge_geometry
 
     x, nodes, kap0 = _random_rod_hinges(64)
-    q, dq, d2q = _hinge_geometry(x, nodes, kap0, second=True)
-    assert torch.allclose(q[0], measure("hinge", x[0, nodes], kap0, None), rtol=1e-14)
-
-    def f(z, r):
-        return measure("hinge", z.reshape(3, 3), r, None)
-
-    xe = x[0, nodes].reshape(-1, 9)
-    for got, want in ((dq[0], vmap(jacrev(f))(xe, kap0)), (d2q[0], vmap(hessian(f))(xe, kap0))):
-        err = float((got - want).abs().max() / want.abs().max())
-        assert err < 1e-13, err
-    eps, fd_g, fd_h = 1e-6, torch.empty_like(dq), torch.empty_like(d2q)
-    for i in range(9):
-        dx = torch.zeros_like(xe)
-        dx[:, i] = eps
-        plus, minus = (xe + dx).reshape(1, -1, 3), (xe - dx).reshape(1, -1, 3)
-        qp, gp, _ = _hinge_geometry(plus, nodes, kap0, second=False)
-        qm, gm, _ = _hinge_geometry(minus, nodes, kap0, second=False)
-        fd_g[..., i] = (qp - qm) / (2 * eps)
-        fd_h[..., i] = (gp - gm) / (2 * eps)
-    err_g = float(((fd_g - dq).norm(dim=-1) / dq.norm(dim=-1)).max())
-    err_h = float(((fd_h - d2q).flatten(2).norm(dim=-1) / d2q.flatten(2).norm(dim=-1)).max())
-    print(f"rod hinge dq: max relative error {err_g:.2e}; d2q: {err_h:.2e}")
-    assert err_g < 1e-7 and err_h < 1e-7
-    assert torch.allclose(d2q, d2q.transpose(-1, -2), rtol=0, atol=1e-12 * float(d2q.abs().max()))
+    check_geometry_derivatives(_hinge_geometry, "hinge", x, nodes, kap0, "rod hinge", 1e-13)
 
 
 @pytest.mark.parametrize("make", [rod_arrays, strip_arrays])

@@ -12,14 +12,14 @@ import math
 import numpy as np
 import pytest
 import torch
-from torch.func import hessian, jacrev, vmap
+from torch.func import jacrev, vmap
 
 from meshodenet.data import Mesh, Trajectories
-from meshodenet.energy import _dihedral_geometry, dihedral_angle, measure
+from meshodenet.energy import _dihedral_geometry, dihedral_angle
 from meshodenet.graph import triangle_hinges
 from meshodenet.models.energy import EnergyConfig, ImplicitEnergy
 from meshodenet.registry import get_model_spec, load_model
-from tests.conftest import strip_arrays
+from tests.conftest import check_geometry_derivatives, strip_arrays
 from tests.test_energy import set_known_energy
 
 F64 = dict(dtype=torch.float64)
@@ -135,29 +135,8 @@ def test_dihedral_derivatives_match_finite_differences_and_autograd():
     against central differences of ``q`` and of the analytic gradient (float64, h = 1e-6), and
     against ``torch.func`` (jacrev, hessian), on 64 random folded hinges."""
     x, nodes, theta0 = _random_hinges(64)
-    q, dq, d2q = _dihedral_geometry(x, nodes, theta0, second=True)
-    assert torch.allclose(q[0], measure("dihedral", x[0, nodes], theta0, None), rtol=1e-14)
-
-    def f(z, r):
-        return measure("dihedral", z.reshape(4, 3), r, None)
-
-    xe = x[0, nodes].reshape(-1, 12)
-    assert torch.allclose(dq[0], vmap(jacrev(f))(xe, theta0), rtol=1e-12, atol=1e-12)
-    assert torch.allclose(d2q[0], vmap(hessian(f))(xe, theta0), rtol=1e-12, atol=1e-12)
-    eps, fd_g, fd_h = 1e-6, torch.empty_like(dq), torch.empty_like(d2q)
-    for i in range(12):
-        dx = torch.zeros_like(xe)
-        dx[:, i] = eps
-        plus, minus = (xe + dx).reshape(1, -1, 3), (xe - dx).reshape(1, -1, 3)
-        qp, gp, _ = _dihedral_geometry(plus, nodes, theta0, second=False)
-        qm, gm, _ = _dihedral_geometry(minus, nodes, theta0, second=False)
-        fd_g[..., i] = (qp - qm) / (2 * eps)
-        fd_h[..., i] = (gp - gm) / (2 * eps)
-    err_g = float(((fd_g - dq).norm(dim=-1) / dq.norm(dim=-1)).max())
-    err_h = float(((fd_h - d2q).flatten(2).norm(dim=-1) / d2q.flatten(2).norm(dim=-1)).max())
-    print(f"dihedral dq: max relative error {err_g:.2e}; d2q: {err_h:.2e}")
-    assert err_g < 1e-7 and err_h < 1e-7
-    assert torch.allclose(d2q, d2q.transpose(-1, -2), rtol=0, atol=1e-12 * float(d2q.abs().max()))
+    check_geometry_derivatives(_dihedral_geometry, "dihedral", x, nodes, theta0, "dihedral",
+                               1e-11)
 
 
 def test_bending_energy_gradient_and_hessian_match_finite_differences():
