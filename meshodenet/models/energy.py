@@ -88,7 +88,7 @@ STIFFNESS_PRIORS = {
     "uniform": "one least-squares stiffness per element type",
     # each element's stiffness linear in its static features (a_t and a fixed factor kappa_e
     # per element, mean 1): on the plate the uniform fit explains 0.1 % of the balance and
-    # starts about 800 times too soft, this one explains 99.6 % (docs/ENERGY.md)
+    # starts about 770 times too soft, this one explains 99.6 % (docs/ENERGY.md)
     "features": "a least-squares stiffness per element, linear in its static features",
 }
 
@@ -587,7 +587,9 @@ class ImplicitEnergy(TrajectoryModel):
 QUICK = {
     "line": (dict(epochs=4, lr=1e-2, lr_milestones=(3,), batch_size=32, max_batches=25,
                   weight_decay=0.0, grad_clip=1.0), dict()),
-    "triangle": (dict(epochs=6, lr=1e-2, lr_milestones=(5,), batch_size=32, max_batches=50,
+    # issue 38 "no bad seed": the per-element least-squares stiffness, then lr 3e-3 (chosen
+    # on validation over 5 seeds against 1e-2 and 1e-3, docs/ENERGY.md "No bad seed")
+    "triangle": (dict(epochs=6, lr=3e-3, lr_milestones=(5,), batch_size=32, max_batches=50,
                       weight_decay=0.0, grad_clip=1.0), dict(stiffness_prior="features")),
 }
 
