@@ -27,8 +27,10 @@ RMS of ``q`` over the training frames), ``s_k`` the element's normalised static 
 log-stiffness per element type. The rest shape is stress free and every element stiff at rest
 (``g > 0``; ``q`` of hinges is a square, so its derivative vanishes at rest). The MLP's last
 layer starts at zero (``g = 1``) and ``a_t`` at a least-squares fit of the training frames'
-momentum balance (``ImplicitEnergy._fit_log_stiffness``). The geometry's derivatives
-``dq/dx``, ``d2q/dx2`` are analytic (``_edge_geometry``, ``_hinge_geometry``,
+momentum balance (``ImplicitEnergy._fit_log_stiffness``); with a ``prior`` (``EnergySystem``,
+``stiffness_prior = "features"``) each element's coefficient ``Y/Ybar e^{a_t}`` is multiplied
+by its fixed factor ``kappa_k > 0``, a function of its rest features only. The geometry's
+derivatives ``dq/dx``, ``d2q/dx2`` are analytic (``_edge_geometry``, ``_hinge_geometry``,
 ``_dihedral_geometry``; ``EnergySystem(analytic=False)`` takes the rod hinges' from
 ``torch.func``, as before issue 38). ``BatchedEnergy`` evaluates the energy for a rollout's
 batched Newton solves: banded Hessian, one MLP pass for all element types.
