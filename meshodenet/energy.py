@@ -27,8 +27,10 @@ RMS of ``q`` over the training frames), ``s_k`` the element's normalised static 
 log-stiffness per element type. The rest shape is stress free and every element stiff at rest
 (``g > 0``; ``q`` of hinges is a square, so its derivative vanishes at rest). The MLP's last
 layer starts at zero (``g = 1``) and ``a_t`` at a least-squares fit of the training frames'
-momentum balance (``ImplicitEnergy._fit_log_stiffness``). The geometry's derivatives
-``dq/dx``, ``d2q/dx2`` are analytic (``_edge_geometry``, ``_hinge_geometry``,
+momentum balance (``ImplicitEnergy._fit_log_stiffness``); with a ``prior`` (``EnergySystem``,
+``stiffness_prior = "features"``) each element's coefficient ``Y/Ybar e^{a_t}`` is multiplied
+by its fixed factor ``kappa_k > 0``, a function of its rest features only. The geometry's
+derivatives ``dq/dx``, ``d2q/dx2`` are analytic (``_edge_geometry``, ``_hinge_geometry``,
 ``_dihedral_geometry``; ``EnergySystem(analytic=False)`` takes the rod hinges' from
 ``torch.func``, as before issue 38). ``BatchedEnergy`` evaluates the energy for a rollout's
 batched Newton solves: banded Hessian, one MLP pass for all element types.
@@ -375,13 +377,22 @@ class EnergySystem:
     parameters, and the network is evaluated on the scalars ``q`` only."""
 
     def __init__(self, terms: nn.ModuleDict, elems: dict, sigma: dict, youngs, ybar: float,
-                 ylog: tuple, analytic: bool = True):
+                 ylog: tuple, analytic: bool = True, prior: dict | None = None):
         self.terms, self.elems, self.sigma = terms, elems, sigma
         self.analytic = analytic  # rod hinges' geometry by hand (else torch.func, as before)
+        self.prior = prior or {}  # per kind: each element's fixed stiffness factor kappa (n,)
         y = youngs.to(torch.float64)
         self.yrel = y / ybar
         self.yhat = (torch.log(y) - ylog[0]) / ylog[1]
         self.B = len(y)
+
+    def scale(self, kind: str) -> torch.Tensor:
+        """``(B, n)``: ``Y / Ybar``, times each element's factor ``kappa`` where the kind has
+        one (the coefficient ``ElementEnergy`` multiplies by ``e^a 1/2 qhat^p g``)."""
+        n = len(self.elems[kind][0])
+        if kind not in self.prior:
+            return self.yrel[:, None].expand(self.B, n)
+        return self.yrel[:, None] * self.prior[kind]
 
     def _dofs(self, kind, N):
         nodes = self.elems[kind][0]
@@ -419,8 +430,7 @@ class EnergySystem:
         nodes, static, _, _ = self.elems[kind]
         n = len(nodes)
         return self.terms[kind](q / self.sigma[kind], static.expand(self.B, n, -1),
-                                self.yhat[:, None].expand(self.B, n),
-                                self.yrel[:, None].expand(self.B, n))
+                                self.yhat[:, None].expand(self.B, n), self.scale(kind))
 
     def derivatives(self, kind, q, order: int, create_graph: bool):
         """``(U'(q), U''(q) or None)`` per element ``(B, n)`` (on the parameters' graph with
@@ -430,7 +440,7 @@ class EnergySystem:
         with torch.set_grad_enabled(create_graph and torch.is_grad_enabled()):
             _, d1, d2 = self.terms[kind].taylor(
                 q / sig, static.expand(self.B, n, -1), self.yhat[:, None].expand(self.B, n),
-                self.yrel[:, None].expand(self.B, n))
+                self.scale(kind))
         return d1 / sig, (d2 / sig**2 if order > 1 else None)
 
     def energy(self, x: torch.Tensor) -> torch.Tensor:
@@ -548,8 +558,10 @@ class BatchedEnergy:
         self.layers = [(torch.stack([li[j].weight for li in lins]),
                         torch.stack([li[j].bias for li in lins])[..., None])
                        for j in range(1, len(lins[0]))]
-        self.coef = torch.stack([sys.yrel * torch.exp(sys.terms[k].log_stiffness)
-                                 for k in kinds])                        # (T, B)
+        #: ``Y / Ybar e^a kappa`` of every element: (T, B, nmax)
+        self.coef = w0.new_zeros(len(kinds), sys.B, nmax)
+        for t, k in enumerate(kinds):
+            self.coef[t, :, :self.counts[t]] = sys.scale(k) * torch.exp(sys.terms[k].log_stiffness)
         self.sigma = [float(sys.sigma[k]) for k in kinds]
 
     def _mlp(self, qhat, idx, order: int):
@@ -602,7 +614,7 @@ class BatchedEnergy:
         ab = x.new_zeros(b, (self.width + 1) * n) if order > 1 else None
         for t, k in enumerate(self.kinds):
             m, sig = self.counts[t], self.sigma[t]
-            u, d1, d2 = _powered(POWER[k], self.coef[t, idx, None], qhat[t, :, :m],
+            u, d1, d2 = _powered(POWER[k], self.coef[t, idx, :m], qhat[t, :, :m],
                                  *(None if g is None else g[t, :, :m] for g in gs))
             U += u.sum(1)
             if not order:

@@ -13,7 +13,7 @@ import torch
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.energy import measure
 from meshodenet.implicit import NewtonError
-from meshodenet.models.energy import EnergyConfig, ImplicitEnergy
+from meshodenet.models.energy import STIFFNESS_PRIORS, EnergyConfig, ImplicitEnergy
 from meshodenet.registry import get_model_spec, load_model
 from tests.conftest import check_geometry_derivatives, rod_arrays, strip_arrays
 
@@ -29,6 +29,9 @@ def _model(arrays, seed=0, train=True, **cfg):
         for k in model.kinds:
             getattr(model, f"{k}_sigma").fill_(0.02)
             model.terms[k].log_stiffness.fill_(-11.5)  # a non-trivial g (the last layer starts at zero)
+            if model.config.stiffness_prior == "features":  # each element its own factor
+                prior = getattr(model, f"{k}_prior")
+                prior.copy_(0.3 + 2.7 * torch.rand_like(prior))
         for term in model.terms.values():
             for p in term.mlp.parameters():
                 p.add_(0.3 * torch.randn_like(p))
@@ -41,10 +44,11 @@ def _perturbed(arrays, scale=0.004, seed=3):
     return x[None].repeat(2, 1, 1)
 
 
+@pytest.mark.parametrize("prior", STIFFNESS_PRIORS)
 @pytest.mark.parametrize("make", [rod_arrays, strip_arrays])
-def test_gradient_and_hessian_match_finite_differences(make):
+def test_gradient_and_hessian_match_finite_differences(make, prior):
     arrays = make()
-    model, tr = _model(arrays)
+    model, tr = _model(arrays, stiffness_prior=prior)
     sys = model.system(tr.youngs[:2])
     x = _perturbed(arrays)
     g = sys.gradient(x)
@@ -62,10 +66,11 @@ def test_gradient_and_hessian_match_finite_differences(make):
     assert torch.allclose(H, H.transpose(1, 2), atol=1e-10 * H.abs().max())
 
 
+@pytest.mark.parametrize("prior", STIFFNESS_PRIORS)
 @pytest.mark.parametrize("make", [rod_arrays, strip_arrays])
-def test_energy_is_invariant_under_rigid_motions_and_zero_at_rest(make):
+def test_energy_is_invariant_under_rigid_motions_and_zero_at_rest(make, prior):
     arrays = make()
-    model, tr = _model(arrays)
+    model, tr = _model(arrays, stiffness_prior=prior)
     sys = model.system(tr.youngs[:2])
     x = _perturbed(arrays)
     c, s = math.cos(0.7), math.sin(0.7)
@@ -311,14 +316,15 @@ def test_rod_hinge_derivatives_match_finite_differences_and_autograd():
     check_geometry_derivatives(_hinge_geometry, "hinge", x, nodes, kap0, "rod hinge", 1e-13)
 
 
+@pytest.mark.parametrize("prior", STIFFNESS_PRIORS)
 @pytest.mark.parametrize("make", [rod_arrays, strip_arrays])
-def test_batched_energy_equals_the_assembled_energy(make):
+def test_batched_energy_equals_the_assembled_energy(make, prior):
     """``BatchedEnergy.evaluate`` (one stacked MLP pass, band storage, a subset of the batch)
     equals ``EnergySystem``'s energy, gradient and dense Hessian on the unknowns."""
     from meshodenet.energy import BatchedEnergy
 
     arrays = make()
-    model, tr = _model(arrays)
+    model, tr = _model(arrays, stiffness_prior=prior)
     sys = model.system(torch.cat([tr.youngs, 1.5 * tr.youngs])[:3])
     x = _perturbed(arrays).repeat(2, 1, 1)[:3]
     x[2] = x[2] + 0.003 * torch.randn_like(x[2])
