@@ -138,7 +138,7 @@ def _solver(case: str) -> tuple:
 register_suite(Suite(
     "quick", "the paper's two cases, MeshODENet, MGN, MeshODENet-IMEX and Implicit-Energy, "
     "quick preset, and the case's solver at the sampling interval (solver_h, a reference "
-    "row): data and one seed took 12.5 min from a fresh clone (tox -e bench, --jobs 2) on a "
+    "row): data and one seed took 10.5 min from a fresh clone (tox -e bench, --jobs 2) on a "
     "shared 2-core CPU (docs/RESULTS.md)",
     _quick_models("rod_falling", "quick") + _solver("rod_falling")
     + _quick_models("plate_cantilever", "quick") + _solver("plate_cantilever"),
