@@ -240,6 +240,24 @@ def test_quick_plate_presets_train_without_weight_decay_and_rods_keep_it():
         assert presets("paper", "triangle")[0].weight_decay == 5e-4
 
 
+def test_quick_plate_preset_rolls_whole_trajectories_and_imex_keeps_its_windows():
+    """Issue 37: MeshODENet learns the plate from whole rollouts from rest, one trajectory per
+    step, with the release weighted apart (validation and test at the paper's steps:
+    docs/HISTORY.md, "MeshODENet's plate from whole rollouts"); 16-interval windows left it at
+    0.55-0.9x standing still. MeshODENet-IMEX's plate preset keeps the windows its committed
+    results were trained with."""
+    from meshodenet.models.imex import imex_presets
+    from meshodenet.models.meshodenet import meshodenet_presets
+
+    tc, mc = meshodenet_presets("quick", "triangle")
+    assert (mc.shooting, mc.hidden, mc.release_weight, mc.rest_position) == (0, 64, 0.05, True)
+    assert (tc.epochs, tc.lr_milestones, tc.batch_size, tc.max_batches) == (7, (5,), 1, 30)
+    assert meshodenet_presets("quick", "line")[1].release_weight == 0
+    itc, imc = imex_presets("quick", "triangle")
+    assert (imc.shooting, imc.hidden, imc.release_weight, imc.release_fraction) == (16, 32, 0, 0.05)
+    assert (itc.epochs, itc.lr_milestones, itc.batch_size, itc.max_batches) == (24, (18,), 4, 24)
+
+
 # --- end to end through the CLI on a tiny generated case ----------------------------------
 
 def _cli(*argv):
