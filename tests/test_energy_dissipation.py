@@ -335,3 +335,19 @@ def test_damping_matrix_on_a_subset_of_coordinates():
     assert torch.allclose(C.matrix(act, model.mesh.n_nodes), full[:, act][:, :, act],
                           rtol=1e-14, atol=0)
 
+
+
+def test_least_squares_basis_has_no_dependent_columns():
+    """A triangle mesh's lumped masses are its nodes' areas, a rod's end nodes differ in
+    both length and degree: the drag's basis keeps independent columns only, as many as the
+    features' rank on the free nodes."""
+    for make in (strip_arrays, rod_arrays):
+        arrays = make()
+        arrays["mass"] = arrays["mass"] * (1 + node_features(Mesh.from_arrays(arrays))[:, 1])
+        model, _ = _model(arrays, train=False)
+        basis = model._damping_basis("node")
+        free = model.free
+        full = torch.cat([torch.ones(len(free), 1, dtype=torch.float64), model.node_dstatic], 1)
+        rank = int(torch.linalg.matrix_rank(full[free]))
+        assert len(basis) == rank < full.shape[1]
+        assert int(torch.linalg.matrix_rank(torch.stack(basis, 1)[free])) == rank

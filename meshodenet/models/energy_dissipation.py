@@ -227,13 +227,19 @@ class ImplicitEnergyDissipation(ImplicitEnergy):
 
     def _damping_basis(self, term: str) -> list:
         """The functions ``(n,)`` a term's least-squares coefficient is made of: ones, and with
-        ``features`` each static feature that varies."""
+        ``features`` each static feature that is not a linear combination of those before it
+        (on the free nodes for the node term: a triangle mesh's masses are its nodes' areas,
+        and dependent columns make the fit's split between them depend on round-off)."""
         static = self._dstatic(term)
-        ones = [torch.ones_like(static[:, 0])]
+        basis = [torch.ones_like(static[:, 0])]
         if self.config.stiffness_prior == "uniform":
-            return ones
-        return ones + [static[:, j] for j in range(static.shape[1])
-                       if bool(static[:, j].abs().max() > 0)]
+            return basis
+        rows = self.free if term == "node" else slice(None)
+        for j in range(static.shape[1]):
+            trial = torch.stack(basis + [static[:, j]], 1)[rows]
+            if int(torch.linalg.matrix_rank(trial, rtol=1e-9)) == len(basis) + 1:
+                basis.append(static[:, j])
+        return basis
 
     def _damping_columns(self, xk, x1, h, skip: tuple = ()) -> tuple[list, list]:
         """The fit's damping columns: the forces ``C_j v`` on the free nodes of each basis
