@@ -33,7 +33,7 @@ import torch
 from torch import nn
 
 from meshodenet.data import Mesh
-from meshodenet.energy import N_STATIC, _edge_geometry
+from meshodenet.energy import N_STATIC, _edge_geometry, zero_output_mlp
 
 #: The terms of the dissipation (``DissipationConfig.damping_terms``):
 DAMPING_TERMS = {
@@ -89,14 +89,7 @@ class DampingCoefficient(nn.Module):
                  train: str = "all"):
         super().__init__()
         self.step = step
-        dims = [n_static + 1] + [hidden] * layers
-        mods = []
-        for a, b in zip(dims[:-1], dims[1:]):
-            mods += [nn.Linear(a, b), nn.SiLU()]
-        last = nn.Linear(dims[-1], 1)
-        nn.init.zeros_(last.weight)
-        nn.init.zeros_(last.bias)
-        self.mlp = nn.Sequential(*mods, last)
+        self.mlp = zero_output_mlp(n_static + 1, hidden, layers)
         self.log_rate = nn.Parameter(torch.zeros(()))
         self.register_buffer("log_rate0", torch.zeros(()))
         if train != "all":  # the MLP stays at g = 1, the elements' shape at its start

@@ -24,8 +24,11 @@ implicit gradients of ``implicit_energy`` apply unchanged. ``h D >= 0`` and ``dD
 The start: the least-squares fit of the training frames' momentum balance ``m a - f + dU/dx
 + C v = 0`` with ``g = 1`` gives the stiffnesses and the damping coefficients together (per
 term one rate, or with ``stiffness_prior = "features"`` each element's coefficient linear in
-its static features, floored at 1e-3 of the term's largest), then training as
-``implicit_energy``.
+its static features, floored at 1e-3 of the term's largest); on a body without clamped nodes
+the drag first and alone, exactly, from the total momentum (``_fit_drag``). Then training as
+``implicit_energy``, moving what ``damping_train`` says (``DAMPING_TRAIN``) at the relative
+step ``damping_step``; ``quick`` trains the plate's drag rate only and the rod's drag not at
+all (docs/ENERGY.md "Told less").
 """
 
 from __future__ import annotations
