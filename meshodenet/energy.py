@@ -307,6 +307,19 @@ def _dihedral_geometry(x, nodes, theta0, second: bool):
 POWER = {"edge": 2, "hinge": 1, "dihedral": 1}
 
 
+def zero_output_mlp(inputs: int, hidden: int, layers: int) -> nn.Sequential:
+    """``layers`` hidden layers of ``hidden`` (SiLU) from ``inputs`` to one output, the last
+    layer zero (the output starts at 0, so ``softplus(out) / ln 2`` starts at 1)."""
+    dims = [inputs] + [hidden] * layers
+    mods = []
+    for a, b in zip(dims[:-1], dims[1:]):
+        mods += [nn.Linear(a, b), nn.SiLU()]
+    last = nn.Linear(dims[-1], 1)
+    nn.init.zeros_(last.weight)
+    nn.init.zeros_(last.bias)
+    return nn.Sequential(*mods, last)
+
+
 class ElementEnergy(nn.Module):
     """``U = Y/Ybar exp(a) 1/2 qhat^p g(qhat, s, yhat)`` of one element type
     (``p = POWER[kind]``)."""
@@ -314,14 +327,7 @@ class ElementEnergy(nn.Module):
     def __init__(self, kind: str, hidden: int, layers: int):
         super().__init__()
         self.power = POWER[kind]
-        dims = [2 + N_STATIC] + [hidden] * layers
-        mods = []
-        for a, b in zip(dims[:-1], dims[1:]):
-            mods += [nn.Linear(a, b), nn.SiLU()]
-        last = nn.Linear(dims[-1], 1)
-        nn.init.zeros_(last.weight)
-        nn.init.zeros_(last.bias)
-        self.mlp = nn.Sequential(*mods, last)
+        self.mlp = zero_output_mlp(2 + N_STATIC, hidden, layers)
         self.log_stiffness = nn.Parameter(torch.zeros(()))
 
     def forward(self, qhat, static, yhat, yrel):

@@ -15,6 +15,11 @@ from meshbench_registry import lookup
 from meshodenet.data import Mesh
 from meshodenet.integrators import INTEGRATORS
 from meshodenet.models.energy import EnergyConfig, ImplicitEnergy, energy_presets
+from meshodenet.models.energy_dissipation import (
+    DissipationConfig,
+    ImplicitEnergyDissipation,
+    dissipation_presets,
+)
 from meshodenet.models.imex import ImexConfig, MeshODENetIMEX, imex_presets
 from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig, meshodenet_presets
 from meshodenet.models.mgn import MeshGraphNet, MeshGraphNetConfig, mgn_presets
@@ -63,6 +68,11 @@ MODELS: dict = {
                                  "a learned elastic energy over edges and rod hinges with the "
                                  "case's masses, loads and drag, one backward-Euler step per "
                                  "interval (docs/ENERGY.md)"),
+    "implicit_energy_dissipation": ModelSpec(
+        ImplicitEnergyDissipation, DissipationConfig, dissipation_presets,
+        "implicit_energy told less: its learned energy with a learned non-negative "
+        "dissipation of invariant features in place of the case's drag; only masses and "
+        "loads given (docs/ENERGY.md)"),
 }
 
 __all__ = ["MODELS", "INTEGRATORS", "ModelSpec", "get_model_spec", "register_model",

@@ -13,7 +13,8 @@ import torch
 from tests.conftest import rod_arrays, strip_arrays
 from tests.fakecuda import DeviceMismatch, FakeCuda, label, label_cpu
 
-MODELS = ("meshodenet", "mgn", "meshodenet_imex", "mgn_unrolled", "implicit_energy")
+MODELS = ("meshodenet", "mgn", "meshodenet_imex", "mgn_unrolled", "implicit_energy",
+          "implicit_energy_dissipation")
 
 
 # --- the emulation itself -------------------------------------------------------------------

@@ -16,7 +16,8 @@ import torch
 
 from tests.conftest import rod_arrays, strip_arrays
 
-MODELS = ("meshodenet", "mgn", "meshodenet_imex", "mgn_unrolled", "implicit_energy")
+MODELS = ("meshodenet", "mgn", "meshodenet_imex", "mgn_unrolled", "implicit_energy",
+          "implicit_energy_dissipation")
 MESHES = {"rod": lambda: rod_arrays(B=4, T=9), "strip": lambda: strip_arrays(B=4, T=9)}
 CUDA = torch.cuda.is_available()
 needs_gpu = pytest.mark.skipif(

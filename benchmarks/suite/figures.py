@@ -14,7 +14,8 @@ from benchmarks.suite.runs import load_test_rollout
 from groundtruth import store
 
 COLORS = {"meshodenet": "tab:blue", "mgn": "tab:red", "meshodenet_imex": "tab:green",
-          "implicit_energy": "tab:purple", "solver_h": "tab:gray"}
+          "implicit_energy": "tab:purple", "implicit_energy_dissipation": "tab:pink",
+          "solver_h": "tab:gray"}
 
 
 def _plt():

@@ -104,10 +104,11 @@ def _both(case: str, preset: str) -> tuple:
 
 
 def _quick_models(case: str, preset: str) -> tuple:
-    """MeshODENet, MGN and ours: MeshODENet-IMEX (docs/TRAINING.md) and Implicit-Energy
-    (docs/ENERGY.md)."""
+    """MeshODENet, MGN and ours: MeshODENet-IMEX (docs/TRAINING.md), Implicit-Energy and
+    Implicit-Energy with a learned dissipation (docs/ENERGY.md)."""
     return _both(case, preset) + (RunSpec(case, "meshodenet_imex", preset),
-                                  RunSpec(case, "implicit_energy", preset))
+                                  RunSpec(case, "implicit_energy", preset),
+                                  RunSpec(case, "implicit_energy_dissipation", preset))
 
 
 SUITES: dict = {}
@@ -136,7 +137,8 @@ def _solver(case: str) -> tuple:
 
 
 register_suite(Suite(
-    "quick", "the paper's two cases, MeshODENet, MGN, MeshODENet-IMEX and Implicit-Energy, "
+    "quick", "the paper's two cases, MeshODENet, MGN, MeshODENet-IMEX, Implicit-Energy and "
+    "Implicit-Energy with a learned dissipation, "
     "quick preset, and the case's solver at the sampling interval (solver_h, a reference "
     "row): data and one seed took 10.5 min from a fresh clone (tox -e bench, --jobs 2) on a "
     "shared 2-core CPU (docs/RESULTS.md)",

@@ -73,11 +73,12 @@ class EnergyConfig:
     def __post_init__(self):
         for name, lo in (("hidden", 1), ("layers", 0), ("shooting", 0), ("newton_max_iter", 1)):
             check_int(self, name, lo)
-        check_nonnegative("EnergyConfig", "newton_rtol", self.newton_rtol)
+        owner = type(self).__name__
+        check_nonnegative(owner, "newton_rtol", self.newton_rtol)
         if not self.newton_rtol > 0:
-            raise ValueError(f"EnergyConfig.newton_rtol must be > 0, got {self.newton_rtol!r}")
+            raise ValueError(f"{owner}.newton_rtol must be > 0, got {self.newton_rtol!r}")
         if self.stiffness_prior not in STIFFNESS_PRIORS:
-            raise ValueError(f"EnergyConfig.stiffness_prior must be one of "
+            raise ValueError(f"{owner}.stiffness_prior must be one of "
                              f"{', '.join(STIFFNESS_PRIORS)}, got {self.stiffness_prior!r}")
 
 
@@ -188,8 +189,9 @@ class ImplicitEnergy(TrajectoryModel):
             + sys.gradient(x, create_graph, geo)
         return r.reshape(len(x), -1)
 
-    def _matrix(self, sys, x, h, act, geo=None):
-        """The Newton matrix ``diag(m/h^2 + c/h) + d2U/dx2`` on the coordinates ``act``."""
+    def _matrix(self, sys, x, h, act, geo=None, xk=None):
+        """The Newton matrix ``diag(m/h^2 + c/h) + d2U/dx2`` on the coordinates ``act``
+        (``xk``, the step's start, is for a subclass whose damping depends on it)."""
         A = sys.hessian(x.detach(), geo, act)
         d = (self.mass / h**2 + self.damping / h).repeat_interleave(3)[act]
         return A + torch.diag(d)
@@ -245,7 +247,7 @@ class ImplicitEnergy(TrajectoryModel):
             geo = sys.geometry(x, second=factor is None)
             r = self._residual(sys, x, xk, vk, h, geo=geo)[:, act]
             if factor is None:
-                A = self._matrix(sys, x, h, act, geo)
+                A = self._matrix(sys, x, h, act, geo, xk)
                 factor = self._factor(A)
             dx = self._substitute(factor, -r)
             if factor[0] == "lu" and bool(((r * dx).sum(1) >= 0).any()):
@@ -262,7 +264,7 @@ class ImplicitEnergy(TrajectoryModel):
                 factor = None
             prev = step
             x = self._line_search(sys, x, xk, vk, h, act, dx, r)
-        raise NewtonError(f"implicit_energy: Newton did not converge at {where}, h = {h:.4g} s: "
+        raise NewtonError(f"{self.name}: Newton did not converge at {where}, h = {h:.4g} s: "
                           f"last step {step:.3g} m > {tol:.3g} m after {done} iterations "
                           f"(largest residual {float(r.abs().max()):.3g} N)")
 
@@ -335,22 +337,7 @@ class ImplicitEnergy(TrajectoryModel):
         cols = be.unknowns
         xkf = xk.reshape(B, -1)
         yk, hv = xkf[:, cols], h * vk.reshape(B, -1)[:, cols]
-        node = cols // 3
-        mh, ch, f = (self.mass / h**2)[node], (self.damping / h)[node], self.force.reshape(-1)[cols]
-
-        def evaluate(y, idx, order):
-            """``(phi, r, ab)`` of the trajectories ``idx`` at unknowns ``y``."""
-            x = xkf[idx].clone()
-            x[:, cols] = y
-            U, dU, ab = be.evaluate(x.reshape(len(idx), -1, 3), idx, order)
-            d = y - yk[idx]
-            a = d - hv[idx]
-            phi = 0.5 * (mh * a * a + ch * d * d).sum(1) - (f * d).sum(1) + U
-            r = None if dU is None else mh * a + ch * d - f + dU
-            if ab is not None:
-                ab[:, 0] += mh + ch
-            return phi, r, ab
-
+        evaluate = self._batched_objective(be, xk, vk, h)
         tol = self.config.newton_rtol * self.length
         idx = torch.arange(B, device=xk.device)
         y = yk + hv
@@ -381,10 +368,36 @@ class ImplicitEnergy(TrajectoryModel):
             for j in torch.nonzero(refactor)[:, 0].tolist():
                 facs[j] = self._band_factor(ab[j].cpu().numpy())
         worst = int(torch.nan_to_num(step, nan=math.inf).argmax())
-        raise NewtonError(f"implicit_energy: Newton did not converge at {where}, h = {h:.4g} s, "
+        raise NewtonError(f"{self.name}: Newton did not converge at {where}, h = {h:.4g} s, "
                           f"trajectory {int(idx[worst])} of the batch: last step "
                           f"{float(step[worst]):.3g} m > {tol:.3g} m after {done} iterations "
                           f"(largest residual {float(r[worst].abs().max()):.3g} N)")
+
+    def _batched_objective(self, be: BatchedEnergy, xk, vk, h):
+        """``evaluate(y, idx, order) -> (phi, r, ab)``: the step's objective relative to
+        ``x_k``, its gradient and (``order`` 2) its Hessian in band storage, of the
+        trajectories ``idx`` at unknowns ``y (b, n)`` (``_newton_batched``)."""
+        B = len(xk)
+        cols = be.unknowns
+        xkf = xk.reshape(B, -1)
+        yk, hv = xkf[:, cols], h * vk.reshape(B, -1)[:, cols]
+        node = cols // 3
+        mh, ch, f = (self.mass / h**2)[node], (self.damping / h)[node], self.force.reshape(-1)[cols]
+
+        def evaluate(y, idx, order):
+            """``(phi, r, ab)`` of the trajectories ``idx`` at unknowns ``y``."""
+            x = xkf[idx].clone()
+            x[:, cols] = y
+            U, dU, ab = be.evaluate(x.reshape(len(idx), -1, 3), idx, order)
+            d = y - yk[idx]
+            a = d - hv[idx]
+            phi = 0.5 * (mh * a * a + ch * d * d).sum(1) - (f * d).sum(1) + U
+            r = None if dU is None else mh * a + ch * d - f + dU
+            if ab is not None:
+                ab[:, 0] += mh + ch
+            return phi, r, ab
+
+        return evaluate
 
     @staticmethod
     def _search(evaluate, idx, y, dx, r, phi, order: int, halvings: int = 12):
@@ -499,6 +512,11 @@ class ImplicitEnergy(TrajectoryModel):
         rhs = -(m / h**2 * (x1 - xk - h * vk) + c / h * (x1 - xk) - self.force)[:, self.free]
         G = torch.stack(lhs, 1)
         s = torch.linalg.lstsq(G, rhs.reshape(-1, 1)).solution[:, 0]
+        self._set_stiffness(s, owner)
+
+    def _set_stiffness(self, s: torch.Tensor, owner: list) -> None:
+        """``a_t`` (and ``kappa_e``) from the least-squares solution ``s`` over the columns
+        of ``_balance_columns`` (``owner`` as it returns)."""
         if self.config.stiffness_prior == "uniform":
             for k, sk in zip(self.kinds, s):
                 sk = float(sk) if float(sk) > 0 else 1e-3 * float(s.abs().max())
@@ -554,7 +572,7 @@ class ImplicitEnergy(TrajectoryModel):
         sys = self.system(data.youngs[traj])
         act = self._active(xk, vk)
         geo = sys.geometry(x1)
-        A = self._matrix(sys, x1, h, act, geo)
+        A = self._matrix(sys, x1, h, act, geo, xk)
         r = self._residual(sys, x1, xk, vk, h, create_graph=True, geo=geo)[:, act]
         d = self._solve(A, r)
         n = len(self.free.nonzero())
