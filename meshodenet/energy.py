@@ -324,15 +324,16 @@ class ElementEnergy(nn.Module):
     """``U = Y/Ybar exp(a) 1/2 qhat^p g(qhat, s, yhat)`` of one element type
     (``p = POWER[kind]``)."""
 
-    def __init__(self, kind: str, hidden: int, layers: int):
+    def __init__(self, kind: str, hidden: int, layers: int, g_min: float = 0.0):
         super().__init__()
         self.power = POWER[kind]
+        self.g_min = float(g_min)
         self.mlp = zero_output_mlp(2 + N_STATIC, hidden, layers)
         self.log_stiffness = nn.Parameter(torch.zeros(()))
 
     def forward(self, qhat, static, yhat, yrel):
         inp = torch.cat([qhat[..., None], static, yhat[..., None]], -1)
-        g = nn.functional.softplus(self.mlp(inp)[..., 0]) / math.log(2.0)
+        g = floored(nn.functional.softplus(self.mlp(inp)[..., 0]) / math.log(2.0), self.g_min)
         return yrel * torch.exp(self.log_stiffness) * 0.5 * qhat**self.power * g
 
     def taylor(self, qhat, static, yhat, yrel):
@@ -361,7 +362,19 @@ class ElementEnergy(nn.Module):
         g = nn.functional.softplus(o) / ln2
         g1 = sg * do / ln2
         g2 = (sg * (1 - sg) * do**2 + sg * d2o) / ln2
+        g, g1, g2 = (floored(v, self.g_min, i > 0) for i, v in enumerate((g, g1, g2)))
         return _powered(self.power, yrel * torch.exp(self.log_stiffness), qhat, g, g1, g2)
+
+
+def floored(g, g_min: float, derivative: bool = False):
+    """``g_min + (1 - g_min) g`` (with ``derivative``, ``(1 - g_min) g``): the element
+    factor ``g`` kept above ``g_min`` (``EnergyConfig.g_min``; 0 leaves ``g`` as it is, bit
+    for bit). With ``g_min > 0`` every element's energy is at least ``g_min`` times the one
+    with ``g = 1``: an edge's grows like its squared stretch however far it stretches or
+    shortens, so the energy is coercive and no element can lose its stiffness."""
+    if not g_min:
+        return g
+    return (1 - g_min) * g if derivative else g_min + (1 - g_min) * g
 
 
 def _powered(power: int, c, q, g, g1=None, g2=None):
@@ -469,10 +482,15 @@ class EnergySystem:
                             (d1[..., None] * dq).reshape(B, -1))
         return g.reshape(B, N, 3)
 
-    @torch.no_grad()
-    def hessian(self, x: torch.Tensor, geo=None, act: torch.Tensor | None = None):
+    def hessian(self, x: torch.Tensor, geo=None, act: torch.Tensor | None = None,
+                create_graph: bool = False):
         """``d2U/dx2`` assembled from the element Hessians: dense ``(B, 3N, 3N)``, or only the
-        rows and columns of the coordinates ``act`` (``(B, n, n)``, the others never formed)."""
+        rows and columns of the coordinates ``act`` (``(B, n, n)``, the others never formed);
+        with ``create_graph`` differentiable in the parameters (``x`` a constant)."""
+        with torch.set_grad_enabled(create_graph and torch.is_grad_enabled()):
+            return self._hessian(x.detach(), geo, act, create_graph)
+
+    def _hessian(self, x, geo, act, create_graph: bool):
         B, N, _ = x.shape
         geo = geo or self.geometry(x)
         where = torch.arange(3 * N, device=x.device) if act is None else \
@@ -481,13 +499,13 @@ class EnergySystem:
         n = 3 * N if act is None else len(act)
         H = x.new_zeros(B, n * n)
         for kind, (q, dq, d2q) in geo.items():
-            d1, d2 = self.derivatives(kind, q, 2, False)
+            d1, d2 = self.derivatives(kind, q, 2, create_graph)
             he = d2[..., None, None] * dq[..., :, None] * dq[..., None, :] \
                 + d1[..., None, None] * d2q
             dof = where[self._dofs(kind, N)]
             keep = ((dof[:, :, None] >= 0) & (dof[:, None, :] >= 0)).reshape(-1)
             flat = (dof[:, :, None] * n + dof[:, None, :]).reshape(-1)
-            H.index_add_(1, flat[keep], he.reshape(B, -1)[:, keep])
+            H = H.index_add(1, flat[keep], he.reshape(B, -1)[:, keep])
         return H.reshape(B, n, n)
 
 
@@ -569,6 +587,10 @@ class BatchedEnergy:
         for t, k in enumerate(kinds):
             self.coef[t, :, :self.counts[t]] = sys.scale(k) * torch.exp(sys.terms[k].log_stiffness)
         self.sigma = [float(sys.sigma[k]) for k in kinds]
+        floors = {sys.terms[k].g_min for k in kinds}
+        if len(floors) != 1:
+            raise ValueError(f"BatchedEnergy: every element type needs the same g_min, got {floors}")
+        self.g_min = floors.pop()
 
     def _mlp(self, qhat, idx, order: int):
         """``(g, g', g'')`` of all types' elements ``(T, b, nmax)`` at ``qhat (T, b, nmax)``
@@ -591,16 +613,16 @@ class BatchedEnergy:
             dz = torch.bmm(w, dz) if order > 0 else None
             d2z = torch.bmm(w, d2z) if d2z is not None else None
         o = z.reshape(T, b, nmax)
-        ln2 = math.log(2.0)
-        g = nn.functional.softplus(o) / ln2
+        ln2, g_min = math.log(2.0), self.g_min
+        g = floored(nn.functional.softplus(o) / ln2, g_min)
         if order == 0:
             return g, None, None
         sg, do = torch.sigmoid(o), dz.expand(T, 1, b * nmax).reshape(T, b, nmax)
-        g1 = sg * do / ln2
+        g1 = floored(sg * do / ln2, g_min, True)
         if order == 1:
             return g, g1, None
         d2o = torch.zeros_like(o) if d2z is None else d2z.reshape(T, b, nmax)
-        return g, g1, (sg * (1 - sg) * do**2 + sg * d2o) / ln2
+        return g, g1, floored((sg * (1 - sg) * do**2 + sg * d2o) / ln2, g_min, True)
 
     @torch.no_grad()
     def evaluate(self, x: torch.Tensor, idx: torch.Tensor, order: int):

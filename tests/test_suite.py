@@ -346,3 +346,21 @@ def test_runs_stored_before_val_split_read_as_random_splits():
     assert tc.val_split == "random" and TrainConfig().val_split == "stratified"
     with pytest.raises(ValueError, match="val_split"):
         apply_overrides(TrainConfig(), TrainConfig(), ["train.val_split=kfold"])
+
+
+def test_runs_start_longest_recorded_first(tmp_path):
+    """``longest_first``: runs a baseline ``runs.csv`` records start longest training first,
+    unrecorded ones before them in the suite's order; a missing or unreadable file changes
+    nothing."""
+    from benchmarks.suite.runner import longest_first
+
+    ids = ["rod-a-s0", "rod-b-s0", "plate-a-s0", "plate-new-s0", "plate-b-s0"]
+    costs = tmp_path / "runs.csv"
+    costs.write_text("run,train_wall_time_s,other\nrod-a-s0,150,x\nrod-b-s0,185,x\n"
+                     "plate-a-s0,1900,x\nplate-b-s0,nan-ish,x\n")
+    assert longest_first(ids, costs) == ["plate-new-s0", "plate-b-s0", "plate-a-s0",
+                                         "rod-b-s0", "rod-a-s0"]
+    assert longest_first(ids, None) == ids
+    assert longest_first(ids, tmp_path / "missing.csv") == ids
+    (tmp_path / "bad.csv").write_bytes(b"\xff\xfe\x00garbage")
+    assert longest_first(ids, tmp_path / "bad.csv") == ids

@@ -5,7 +5,8 @@ unchanged are reused; interrupted ones resume), rolls the best checkpoints out o
 split and writes RESULTS/S/{runs,metrics,rmse_at_step}.csv, rmse_at_step.md and figures/.
 With --compare-with DIR, then compares RESULTS/S/rmse_at_step.csv against DIR/S/ (exit 1 on
 a regression) with the per-row tolerances of DIR/S/tolerance.csv (``meshbench tolerance``);
-only the rows this run produced are compared (e.g. seed 0 of a three-seed baseline).
+only the rows this run produced are compared (e.g. seed 0 of a three-seed baseline); with
+--jobs > 1 the runs start longest first by DIR/S/runs.csv's training times.
 Suites: smoke, quick, paper, hanging, integrators, curves, and those plugins register (see
 --list)."""
 
@@ -47,7 +48,9 @@ def register(sub):
                         "directory brought up to this version's tables)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--compare-with", default=None, metavar="DIR",
-                   help="afterwards compare rmse_at_step.csv with DIR/SUITE/rmse_at_step.csv")
+                   help="afterwards compare rmse_at_step.csv with DIR/SUITE/rmse_at_step.csv "
+                        "(and start the runs longest first by DIR/SUITE/runs.csv's training "
+                        "times)")
     p.add_argument("--rtol", type=float, default=None,
                    help="one relative tolerance for --compare-with instead of the per-row "
                         "tolerances of DIR/SUITE/tolerance.csv (without that file: the "
@@ -86,7 +89,9 @@ def run(args):
                     data_dir=args.data_dir, seeds=args.seeds, only=args.only, jobs=args.jobs,
                     threads=args.threads, plugin_files=loaded_files(), device=args.device,
                     progress=not args.no_progress, figures=not args.no_figures,
-                    executor=args.executor, scheduler=args.scheduler)
+                    executor=args.executor, scheduler=args.scheduler,
+                    costs=None if args.compare_with is None
+                    else Path(args.compare_with) / suite.name / "runs.csv")
     print((res["results"] / "rmse_at_step.md").read_text())
     if args.compare_with is None:
         return 0

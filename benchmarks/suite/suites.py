@@ -152,8 +152,10 @@ register_suite(Suite(
     _both("rod_falling", "paper") + _both("plate_cantilever", "paper")))
 register_suite(Suite(
     "hanging", "plate_hanging (the paper's text read literally: gravity through the thickness, "
-    "a heavy swinging chain that no model in the suite learns yet), MeshODENet and MGN, quick "
-    "preset", _both("plate_hanging", "quick"), compare_rtol=0.05))
+    "a heavy swinging chain), MeshODENet, MGN and Implicit-Energy (its dihedral bending term, "
+    "docs/ENERGY.md), quick preset, and the case's solver at the sampling interval",
+    _both("plate_hanging", "quick") + (RunSpec("plate_hanging", "implicit_energy", "quick"),)
+    + _solver("plate_hanging"), compare_rtol=0.05))
 register_suite(Suite(
     "integrators", "MeshODENet on rod_falling (quick preset) with euler / midpoint / rk4 / "
     "dopri5 (direct gradients), rk4 with adjoint and checkpointed gradients, and the implicit "

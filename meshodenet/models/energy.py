@@ -61,7 +61,13 @@ class EnergyConfig:
     ``shooting``: 0 the linearised one-step loss, ``S > 0`` windows of ``S`` steps;
     ``newton_rtol``: Newton stops when no node moves by more than this times the mean rest edge
     length; ``newton_max_iter``: iterations before ``NewtonError``; ``stiffness_prior``: how
-    the initial stiffness is fitted (a key of ``STIFFNESS_PRIORS``)."""
+    the initial stiffness is fitted (a key of ``STIFFNESS_PRIORS``); ``exact_loss_gradient``:
+    the one-step loss ``|A^{-1} r|^2`` differentiated with its matrix ``A`` on the parameters'
+    graph too (its exact gradient; False, the default, holds ``A`` fixed: a cheaper surrogate
+    that serves the rod and the in-plane plate but is no descent direction on
+    ``plate_hanging``, docs/ENERGY.md "Training"); ``g_min``: the least value of each
+    element's factor ``g``, in ``[0, 1)`` (``meshodenet.energy.floored``; 0, the default,
+    leaves it unbounded below; > 0 keeps every element stiff: a coercive energy)."""
 
     hidden: int = 32
     layers: int = 2
@@ -69,12 +75,20 @@ class EnergyConfig:
     newton_rtol: float = 1e-8
     newton_max_iter: int = 30
     stiffness_prior: str = "uniform"
+    exact_loss_gradient: bool = False
+    g_min: float = 0.0
 
     def __post_init__(self):
         for name, lo in (("hidden", 1), ("layers", 0), ("shooting", 0), ("newton_max_iter", 1)):
             check_int(self, name, lo)
         owner = type(self).__name__
         check_nonnegative(owner, "newton_rtol", self.newton_rtol)
+        check_nonnegative(owner, "g_min", self.g_min)
+        if not self.g_min < 1:
+            raise ValueError(f"{owner}.g_min must be in [0, 1), got {self.g_min!r}")
+        if not isinstance(self.exact_loss_gradient, bool):
+            raise ValueError(f"{owner}.exact_loss_gradient must be a bool, "
+                             f"got {self.exact_loss_gradient!r}")
         if not self.newton_rtol > 0:
             raise ValueError(f"{owner}.newton_rtol must be > 0, got {self.newton_rtol!r}")
         if self.stiffness_prior not in STIFFNESS_PRIORS:
@@ -125,7 +139,7 @@ class ImplicitEnergy(TrajectoryModel):
         self.kinds = [k for k in TYPES if k in feats and len(feats[k][0])
                       and not (k == "dihedral" and self.planar)]
         # float64 throughout: Newton resolves stiff springs' stretches of 1e-5
-        self.terms = nn.ModuleDict({k: ElementEnergy(k, config.hidden, config.layers)
+        self.terms = nn.ModuleDict({k: ElementEnergy(k, config.hidden, config.layers, config.g_min)
                                     for k in self.kinds}).double()
         f64 = dict(dtype=torch.float64)
         x0 = torch.as_tensor(mesh.rest_pos, **f64)
@@ -189,10 +203,11 @@ class ImplicitEnergy(TrajectoryModel):
             + sys.gradient(x, create_graph, geo)
         return r.reshape(len(x), -1)
 
-    def _matrix(self, sys, x, h, act, geo=None, xk=None):
+    def _matrix(self, sys, x, h, act, geo=None, xk=None, create_graph: bool = False):
         """The Newton matrix ``diag(m/h^2 + c/h) + d2U/dx2`` on the coordinates ``act``
-        (``xk``, the step's start, is for a subclass whose damping depends on it)."""
-        A = sys.hessian(x.detach(), geo, act)
+        (``xk``, the step's start, is for a subclass whose damping depends on it; with
+        ``create_graph`` differentiable in the parameters)."""
+        A = sys.hessian(x.detach(), geo, act, create_graph)
         d = (self.mass / h**2 + self.damping / h).repeat_interleave(3)[act]
         return A + torch.diag(d)
 
@@ -572,7 +587,9 @@ class ImplicitEnergy(TrajectoryModel):
         sys = self.system(data.youngs[traj])
         act = self._active(xk, vk)
         geo = sys.geometry(x1)
-        A = self._matrix(sys, x1, h, act, geo, xk)
+        exact = self.config.exact_loss_gradient
+        A = self._matrix(sys, x1, h, act, geo, xk, create_graph=True) if exact \
+            else self._matrix(sys, x1, h, act, geo, xk)
         r = self._residual(sys, x1, xk, vk, h, create_graph=True, geo=geo)[:, act]
         d = self._solve(A, r)
         n = len(self.free.nonzero())

@@ -137,9 +137,9 @@ class ImplicitEnergyDissipation(ImplicitEnergy):
         C = self._damping(sys, xk, create_graph)
         return r + C.force((x - xk) / h).reshape(len(x), -1)
 
-    def _matrix(self, sys, x, h, act, geo=None, xk=None):
+    def _matrix(self, sys, x, h, act, geo=None, xk=None, create_graph: bool = False):
         assert xk is not None, "the learned damping's matrix needs the step's start"
-        A = super()._matrix(sys, x, h, act, geo)
+        A = super()._matrix(sys, x, h, act, geo, create_graph=create_graph)
         return A + self._damping(sys, xk).matrix(act, self.mesh.n_nodes) / h
 
     def _objective(self, sys, x, xk, vk, h):
