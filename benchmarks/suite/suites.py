@@ -140,7 +140,7 @@ register_suite(Suite(
     "quick", "the paper's two cases, MeshODENet, MGN, MeshODENet-IMEX, Implicit-Energy and "
     "Implicit-Energy with a learned dissipation, "
     "quick preset, and the case's solver at the sampling interval (solver_h, a reference "
-    "row): data and one seed took 10.5 min from a fresh clone (tox -e bench, --jobs 2) on a "
+    "row): data and one seed took 34.6 min from a fresh clone (tox -e bench, --jobs 2) on a "
     "shared 2-core CPU (docs/RESULTS.md)",
     _quick_models("rod_falling", "quick") + _solver("rod_falling")
     + _quick_models("plate_cantilever", "quick") + _solver("plate_cantilever"),
@@ -154,7 +154,11 @@ register_suite(Suite(
     "hanging", "plate_hanging (the paper's text read literally: gravity through the thickness, "
     "a heavy swinging chain), MeshODENet, MGN and Implicit-Energy (its dihedral bending term, "
     "docs/ENERGY.md), quick preset, and the case's solver at the sampling interval",
-    _both("plate_hanging", "quick") + (RunSpec("plate_hanging", "implicit_energy", "quick"),)
+    _both("plate_hanging", "quick")
+    # the one-step loss's exact gradient: its fixed-matrix surrogate is no descent direction
+    # on this case (docs/ENERGY.md, "Bending")
+    + (RunSpec("plate_hanging", "implicit_energy", "quick",
+               overrides=("model.exact_loss_gradient=true",)),)
     + _solver("plate_hanging"), compare_rtol=0.05))
 register_suite(Suite(
     "integrators", "MeshODENet on rod_falling (quick preset) with euler / midpoint / rk4 / "
