@@ -215,6 +215,39 @@ def test_newton_failure_names_the_interval():
         model.rollout(tr.pos[:1, 0], tr.vel[:1, 0], tr.youngs[:1], tr.t)
 
 
+def test_evaluation_rollout_is_nan_after_a_failed_newton(monkeypatch, tmp_path):
+    """``on_newton_failure = "nan"`` (the suite's evaluation): the trajectory whose Newton
+    fails keeps its frames up to the failing interval and is NaN after it; the others of its
+    batch are rolled alone and equal their rollouts without the failure; the default raises,
+    a rollout with gradients raises, a bad value is an error naming the attribute."""
+    arrays = rod_arrays()
+    model, tr = _model(arrays)
+    x0, v0, y, t = tr.pos[:2, 0], tr.vel[:2, 0], tr.youngs[:2], tr.t[:6]
+    with torch.no_grad():
+        clean = model.rollout(x0, v0, y, t)[0]
+    real = ImplicitEnergy._newton_batched
+
+    def failing(self, be, xk, vk, h, where):  # the second trajectory fails at interval 3
+        if "interval 3 " in where and any(torch.allclose(xk[i].float(), clean[1, 3].float(), rtol=0, atol=1e-6)
+                                           for i in range(len(xk))):
+            raise NewtonError(f"did not converge at {where}")
+        return real(self, be, xk, vk, h, where)
+
+    monkeypatch.setattr(ImplicitEnergy, "_newton_batched", failing)
+    with torch.no_grad(), pytest.raises(NewtonError, match="interval 3"):
+        model.rollout(x0, v0, y, t)
+    model.on_newton_failure = "nan"
+    with torch.no_grad(), pytest.warns(RuntimeWarning, match="interval 3.*NaN"):
+        pos, vel = model.rollout(x0, v0, y, t)
+    assert torch.allclose(pos[0], clean[0], rtol=0, atol=1e-9)
+    assert torch.allclose(pos[1, :4], clean[1, :4], rtol=0, atol=1e-9)
+    assert torch.isnan(pos[1, 4:]).all() and torch.isnan(vel[1, 4:]).all()
+    assert not torch.isnan(vel[1, :4]).any()
+    model.on_newton_failure = "skip"
+    with torch.no_grad(), pytest.raises(ValueError, match="on_newton_failure .*'skip'"):
+        model.rollout(x0, v0, y, t)
+
+
 def set_known_energy(model, sigma: dict, ystats, log_stiffness: dict) -> None:
     """Give ``model`` a known energy: every MLP zeroed (``g = 1``), the invariants' scales
     ``sigma`` and the moduli statistics ``ystats`` fixed, and the log-stiffnesses set (what

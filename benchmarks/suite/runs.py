@@ -455,6 +455,8 @@ def _load_run(run_dir: Path, checkpoint: str, device: str):
     model, ck = load_run_model(run_dir / f"{checkpoint}.pt", pick_device(device),
                                f"retrain the run (meshbench train --out {run_dir} ...) or "
                                "restore the file")
+    if hasattr(model, "on_newton_failure"):  # evaluation: a failed implicit solve is a
+        model.on_newton_failure = "nan"      # diverged rollout (NaN), not a crash
     return config, model, ck
 
 

@@ -33,14 +33,15 @@ Newton's iterations.
 Training: ``shooting = 0`` (quick) minimises the one-step error linearised at the ground truth,
 ``|A^{-1} r(x_{k+1})|^2`` with ``A`` at the true next frame (no Newton), over all (trajectory,
 frame) pairs, normalised by the mean squared one-step motion (training split); the velocity of
-a frame is the backward difference of the positions, as in a rollout. ``shooting = S > 0``
-trains on windows of ``S`` exact steps from a true frame instead.
+a frame is the backward difference of the positions, as in a rollout; its gradient holds ``A``
+fixed unless ``exact_loss_gradient``. ``shooting = S > 0`` trains on windows of ``S`` exact
+steps from a true frame instead.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import warnings
 
 import numpy as np
 import torch
@@ -51,73 +52,9 @@ from meshodenet.data import Mesh, Trajectories
 from meshodenet.energy import TYPES, BatchedEnergy, ElementEnergy, EnergySystem, measure, static_features
 from meshodenet.implicit import NewtonError
 from meshodenet.interface import TrajectoryModel
-from meshodenet.models.common import check_int, check_nonnegative, preset_configs
+from meshodenet.models.common import preset_configs
+from meshodenet.models.energy_config import SOLVERS, STIFFNESS_PRIORS, EnergyConfig
 from meshodenet.train import TrainConfig
-
-
-@dataclass(frozen=True)
-class EnergyConfig:
-    """``hidden``, ``layers``: width and hidden layers of each element type's MLP;
-    ``shooting``: 0 the linearised one-step loss, ``S > 0`` windows of ``S`` steps;
-    ``newton_rtol``: Newton stops when no node moves by more than this times the mean rest edge
-    length; ``newton_max_iter``: iterations before ``NewtonError``; ``stiffness_prior``: how
-    the initial stiffness is fitted (a key of ``STIFFNESS_PRIORS``); ``exact_loss_gradient``:
-    the one-step loss ``|A^{-1} r|^2`` differentiated with its matrix ``A`` on the parameters'
-    graph too (its exact gradient; False, the default, holds ``A`` fixed: a cheaper surrogate
-    that serves the rod and the in-plane plate but is no descent direction on
-    ``plate_hanging``, docs/ENERGY.md "Training"); ``g_min``: the least value of each
-    element's factor ``g``, in ``[0, 1)`` (``meshodenet.energy.floored``; 0, the default,
-    leaves it unbounded below; > 0 keeps every element stiff: a coercive energy)."""
-
-    hidden: int = 32
-    layers: int = 2
-    shooting: int = 0
-    newton_rtol: float = 1e-8
-    newton_max_iter: int = 30
-    stiffness_prior: str = "uniform"
-    exact_loss_gradient: bool = False
-    g_min: float = 0.0
-
-    def __post_init__(self):
-        for name, lo in (("hidden", 1), ("layers", 0), ("shooting", 0), ("newton_max_iter", 1)):
-            check_int(self, name, lo)
-        owner = type(self).__name__
-        check_nonnegative(owner, "newton_rtol", self.newton_rtol)
-        check_nonnegative(owner, "g_min", self.g_min)
-        if not self.g_min < 1:
-            raise ValueError(f"{owner}.g_min must be in [0, 1), got {self.g_min!r}")
-        if not isinstance(self.exact_loss_gradient, bool):
-            raise ValueError(f"{owner}.exact_loss_gradient must be a bool, "
-                             f"got {self.exact_loss_gradient!r}")
-        if not self.newton_rtol > 0:
-            raise ValueError(f"{owner}.newton_rtol must be > 0, got {self.newton_rtol!r}")
-        if self.stiffness_prior not in STIFFNESS_PRIORS:
-            raise ValueError(f"{owner}.stiffness_prior must be one of "
-                             f"{', '.join(STIFFNESS_PRIORS)}, got {self.stiffness_prior!r}")
-
-
-#: The initial stiffness (``EnergyConfig.stiffness_prior``), both least-squares fits of the
-#: training frames' momentum balance with ``g = 1`` (``ImplicitEnergy._fit_log_stiffness``):
-STIFFNESS_PRIORS = {
-    # one stiffness per element type (a_t); the default, and the only fit before issue 38
-    "uniform": "one least-squares stiffness per element type",
-    # each element's stiffness linear in its static features (a_t and a fixed factor kappa_e
-    # per element, mean 1): on the plate the uniform fit explains 0.1 % of the balance and
-    # starts about 770 times too soft, this one explains 99.6 % (docs/ENERGY.md)
-    "features": "a least-squares stiffness per element, linear in its static features",
-}
-
-
-#: How a rollout without gradients solves its steps (``ImplicitEnergy.solver``):
-SOLVERS = {
-    # each trajectory its own Newton (its own chord and line-search decisions), all of the
-    # batch's in one pass per iteration, converged trajectories dropping out; banded
-    # Cholesky in a reverse Cuthill-McKee order; the rod hinges' derivatives by hand
-    "batched": "per-trajectory Newton, banded Cholesky, one MLP pass for all elements",
-    # the solver before issue 38: one Newton for the whole batch (it stops when the last
-    # trajectory converges), dense Cholesky, rod hinges by torch.func
-    "reference": "one Newton for the batch, dense Cholesky, torch.func rod hinges",
-}
 
 
 class ImplicitEnergy(TrajectoryModel):
@@ -129,6 +66,7 @@ class ImplicitEnergy(TrajectoryModel):
     integrator_id = "backward_euler"
     grad_mode_id = "implicit"
     solver = "batched"
+    on_newton_failure = "raise"
 
     def __init__(self, mesh: Mesh, config: EnergyConfig, train: Trajectories | None = None):
         super().__init__(mesh, config)
@@ -317,6 +255,32 @@ class ImplicitEnergy(TrajectoryModel):
 
     # --- rollouts -----------------------------------------------------------------------------
     def rollout(self, x0, v0, youngs, t):
+        """As ``TrajectoryModel.rollout``. A step whose Newton does not converge raises
+        ``NewtonError``; with ``on_newton_failure = "nan"`` (an attribute; the suite's test and
+        long-horizon evaluation set it) a rollout without gradients instead rolls each
+        trajectory of the batch alone, and one that fails keeps its frames up to the failing
+        interval and NaN after it, as a rollout that diverged."""
+        if self.on_newton_failure not in ("raise", "nan"):
+            raise ValueError("ImplicitEnergy.on_newton_failure must be 'raise' or 'nan', got "
+                             f"{self.on_newton_failure!r}")
+        pos, vel = [], []
+        try:
+            return self._rollout(x0, v0, youngs, t, pos, vel)
+        except NewtonError as e:
+            if self.on_newton_failure == "raise" or torch.is_grad_enabled():
+                raise
+            if len(x0) > 1:
+                parts = [self.rollout(x0[i:i + 1], v0[i:i + 1], youngs[i:i + 1], t)
+                         for i in range(len(x0))]
+                return torch.cat([p for p, _ in parts]), torch.cat([v for _, v in parts])
+            warnings.warn(f"{e}; its frames from there on are NaN", RuntimeWarning, stacklevel=2)
+            gone = torch.full_like(pos[0], math.nan)
+            pos += [gone] * (len(t) - len(pos))
+            vel += [gone] * (len(t) - len(vel))
+            return torch.stack(pos, 1).to(x0.dtype), torch.stack(vel, 1).to(x0.dtype)
+
+    def _rollout(self, x0, v0, youngs, t, pos: list, vel: list):
+        """The rollout; its frames are appended to ``pos`` and ``vel`` as they are found."""
         if self.solver not in SOLVERS:
             raise ValueError(f"ImplicitEnergy.solver must be one of {', '.join(SOLVERS)}, got "
                              f"{self.solver!r}")
@@ -331,7 +295,8 @@ class ImplicitEnergy(TrajectoryModel):
             step = lambda x, v, h, where: self._newton_batched(unknowns, x, v, h, where)  # noqa: E731
         else:
             step = lambda x, v, h, where: self.step(sys, x, v, h, act, where)  # noqa: E731
-        pos, vel = [x], [v]
+        pos.append(x)
+        vel.append(v)
         for k in range(len(t) - 1):
             h = float(t[k + 1] - t[k])
             xn = step(x, v, h, f"interval {k} (t = {float(t[k]):.4g} s)")

@@ -1,0 +1,74 @@
+"""Implicit-Energy's configuration (``EnergyConfig``), its initial stiffness fits
+(``STIFFNESS_PRIORS``) and rollout solvers (``SOLVERS``); the model is
+``meshodenet.models.energy``, which re-exports all three."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from meshodenet.models.common import check_int, check_nonnegative
+
+
+@dataclass(frozen=True)
+class EnergyConfig:
+    """``hidden``, ``layers``: width and hidden layers of each element type's MLP;
+    ``shooting``: 0 the linearised one-step loss, ``S > 0`` windows of ``S`` steps;
+    ``newton_rtol``: Newton stops when no node moves by more than this times the mean rest edge
+    length; ``newton_max_iter``: iterations before ``NewtonError``; ``stiffness_prior``: how
+    the initial stiffness is fitted (a key of ``STIFFNESS_PRIORS``); ``exact_loss_gradient``:
+    the one-step loss ``|A^{-1} r|^2`` differentiated with its matrix ``A`` on the parameters'
+    graph too (its exact gradient; False, the default, holds ``A`` fixed: a cheaper surrogate
+    that serves the rod and the in-plane plate but is no descent direction on
+    ``plate_hanging``, docs/ENERGY.md "Training"); ``g_min``: the least value of each
+    element's factor ``g``, in ``[0, 1)`` (``meshodenet.energy.floored``; 0, the default,
+    leaves it unbounded below; > 0 keeps every element stiff: a coercive energy)."""
+
+    hidden: int = 32
+    layers: int = 2
+    shooting: int = 0
+    newton_rtol: float = 1e-8
+    newton_max_iter: int = 30
+    stiffness_prior: str = "uniform"
+    exact_loss_gradient: bool = False
+    g_min: float = 0.0
+
+    def __post_init__(self):
+        for name, lo in (("hidden", 1), ("layers", 0), ("shooting", 0), ("newton_max_iter", 1)):
+            check_int(self, name, lo)
+        owner = type(self).__name__
+        check_nonnegative(owner, "newton_rtol", self.newton_rtol)
+        check_nonnegative(owner, "g_min", self.g_min)
+        if not self.g_min < 1:
+            raise ValueError(f"{owner}.g_min must be in [0, 1), got {self.g_min!r}")
+        if not isinstance(self.exact_loss_gradient, bool):
+            raise ValueError(f"{owner}.exact_loss_gradient must be a bool, "
+                             f"got {self.exact_loss_gradient!r}")
+        if not self.newton_rtol > 0:
+            raise ValueError(f"{owner}.newton_rtol must be > 0, got {self.newton_rtol!r}")
+        if self.stiffness_prior not in STIFFNESS_PRIORS:
+            raise ValueError(f"{owner}.stiffness_prior must be one of "
+                             f"{', '.join(STIFFNESS_PRIORS)}, got {self.stiffness_prior!r}")
+
+
+#: The initial stiffness (``EnergyConfig.stiffness_prior``), both least-squares fits of the
+#: training frames' momentum balance with ``g = 1`` (``ImplicitEnergy._fit_log_stiffness``):
+STIFFNESS_PRIORS = {
+    # one stiffness per element type (a_t); the default, and the only fit before issue 38
+    "uniform": "one least-squares stiffness per element type",
+    # each element's stiffness linear in its static features (a_t and a fixed factor kappa_e
+    # per element, mean 1): on the plate the uniform fit explains 0.1 % of the balance and
+    # starts about 770 times too soft, this one explains 99.6 % (docs/ENERGY.md)
+    "features": "a least-squares stiffness per element, linear in its static features",
+}
+
+
+#: How a rollout without gradients solves its steps (``ImplicitEnergy.solver``):
+SOLVERS = {
+    # each trajectory its own Newton (its own chord and line-search decisions), all of the
+    # batch's in one pass per iteration, converged trajectories dropping out; banded
+    # Cholesky in a reverse Cuthill-McKee order; the rod hinges' derivatives by hand
+    "batched": "per-trajectory Newton, banded Cholesky, one MLP pass for all elements",
+    # the solver before issue 38: one Newton for the whole batch (it stops when the last
+    # trajectory converges), dense Cholesky, rod hinges by torch.func
+    "reference": "one Newton for the batch, dense Cholesky, torch.func rod hinges",
+}
