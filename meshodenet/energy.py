@@ -46,7 +46,7 @@ from torch import nn
 from torch.func import hessian, jacrev, vmap
 
 from meshodenet.data import Mesh
-from meshodenet.graph import rod_hinges, triangle_hinges
+from meshodenet.graph import band_order, rod_hinges, triangle_hinges
 
 TYPES = ("edge", "hinge", "dihedral")
 N_STATIC = 4
@@ -507,17 +507,6 @@ class EnergySystem:
             flat = (dof[:, :, None] * n + dof[:, None, :]).reshape(-1)
             H = H.index_add(1, flat[keep], he.reshape(B, -1)[:, keep])
         return H.reshape(B, n, n)
-
-
-def band_order(pairs: np.ndarray, n: int) -> np.ndarray:
-    """A reverse Cuthill-McKee order ``(n,)`` (new position -> old index) of ``n`` unknowns
-    coupled by the index pairs ``pairs (m, 2)``: it makes their matrix banded and narrow."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import reverse_cuthill_mckee
-
-    i, j = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
-    graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
-    return np.asarray(reverse_cuthill_mckee(graph, symmetric_mode=True), np.int64)
 
 
 #: ``(q, dq, d2q)`` of each element type (``geometry``'s analytic functions)

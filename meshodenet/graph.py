@@ -140,3 +140,14 @@ class GraphTopology:
             force=tile(m.force), damping=tile(m.damping[:, None]),
             node_type=torch.as_tensor(np.tile(m.node_type, n_graphs), device=device),
             rest_vec=tile(rest), rest_pos=tile(m.rest_pos))
+
+
+def band_order(pairs: np.ndarray, n: int) -> np.ndarray:
+    """A reverse Cuthill-McKee order ``(n,)`` (new position -> old index) of ``n`` unknowns
+    coupled by the index pairs ``pairs (m, 2)``: it makes their matrix banded and narrow."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    i, j = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
+    graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
+    return np.asarray(reverse_cuthill_mckee(graph, symmetric_mode=True), np.int64)

@@ -352,7 +352,7 @@ def test_runs_start_longest_recorded_first(tmp_path):
     """``longest_first``: runs a baseline ``runs.csv`` records start longest training first,
     unrecorded ones before them in the suite's order; a missing or unreadable file changes
     nothing."""
-    from benchmarks.suite.runner import longest_first
+    from benchmarks.suite.procs import longest_first
 
     ids = ["rod-a-s0", "rod-b-s0", "plate-a-s0", "plate-new-s0", "plate-b-s0"]
     costs = tmp_path / "runs.csv"

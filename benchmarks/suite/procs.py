@@ -314,3 +314,28 @@ def peak_rss_mb() -> float:
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def longest_first(run_ids: list, costs: str | Path | None) -> list:
+    """``run_ids`` in the order to start them: those with a recorded training time in the
+    ``runs.csv`` ``costs`` (columns ``run``, ``train_wall_time_s``) longest first, runs it
+    does not record (their time unknown) before them in the suite's order; unchanged without
+    ``costs`` or when it is missing or unreadable. With ``--jobs K`` the suite's longest run
+    then starts at once rather than when a slot frees (the main job's plate MeshODENet run is
+    three quarters of its time)."""
+    import csv
+
+    if costs is None or not Path(costs).is_file():
+        return list(run_ids)
+    recorded = {}
+    try:
+        with open(costs, newline="") as f:
+            for row in csv.DictReader(f):
+                try:
+                    recorded[row["run"]] = float(row["train_wall_time_s"])
+                except (KeyError, TypeError, ValueError):
+                    continue
+    except (OSError, csv.Error, UnicodeDecodeError):
+        return list(run_ids)
+    pos = {k: i for i, k in enumerate(run_ids)}
+    return sorted(run_ids, key=lambda k: (k in recorded, -recorded.get(k, 0.0), pos[k]))

@@ -375,7 +375,7 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
         runs_dir = runs_dir.resolve()
         data_dir = store.data_dir(data_dir).resolve()
         plugin_files = tuple(str(Path(p).resolve()) for p in plugin_files)
-    order = longest_first([r.run_id for r in runs], costs)
+    order = procs.longest_first([r.run_id for r in runs], costs)
     if order != [r.run_id for r in runs]:
         _log("start order (longest recorded training first): " + ", ".join(order))
     by_order = {r.run_id: r for r in runs}
@@ -430,31 +430,6 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
         paths = write_results(out, ordered, runs_dir, suite, figures=figures, data_dir=data_dir)
     _log(f"suite {suite.name!r} done in {time.time() - t0:.0f} s; results in {out}")
     return {"results": out, "records": ordered, "paths": paths}
-
-
-def longest_first(run_ids: list, costs: str | Path | None) -> list:
-    """``run_ids`` in the order to start them: those with a recorded training time in the
-    ``runs.csv`` ``costs`` (columns ``run``, ``train_wall_time_s``) longest first, runs it
-    does not record (their time unknown) before them in the suite's order; unchanged without
-    ``costs`` or when it is missing or unreadable. With ``--jobs K`` the suite's longest run
-    then starts at once rather than when a slot frees (the main job's plate MeshODENet run is
-    three quarters of its time)."""
-    import csv
-
-    if costs is None or not Path(costs).is_file():
-        return list(run_ids)
-    recorded = {}
-    try:
-        with open(costs, newline="") as f:
-            for row in csv.DictReader(f):
-                try:
-                    recorded[row["run"]] = float(row["train_wall_time_s"])
-                except (KeyError, TypeError, ValueError):
-                    continue
-    except (OSError, csv.Error, UnicodeDecodeError):
-        return list(run_ids)
-    pos = {k: i for i, k in enumerate(run_ids)}
-    return sorted(run_ids, key=lambda k: (k in recorded, -recorded.get(k, 0.0), pos[k]))
 
 
 class SuiteError(ValueError):
