@@ -324,16 +324,15 @@ class ElementEnergy(nn.Module):
     """``U = Y/Ybar exp(a) 1/2 qhat^p g(qhat, s, yhat)`` of one element type
     (``p = POWER[kind]``)."""
 
-    def __init__(self, kind: str, hidden: int, layers: int, g_min: float = 0.0):
+    def __init__(self, kind: str, hidden: int, layers: int):
         super().__init__()
         self.power = POWER[kind]
-        self.g_min = float(g_min)
         self.mlp = zero_output_mlp(2 + N_STATIC, hidden, layers)
         self.log_stiffness = nn.Parameter(torch.zeros(()))
 
     def forward(self, qhat, static, yhat, yrel):
         inp = torch.cat([qhat[..., None], static, yhat[..., None]], -1)
-        g = floored(nn.functional.softplus(self.mlp(inp)[..., 0]) / math.log(2.0), self.g_min)
+        g = nn.functional.softplus(self.mlp(inp)[..., 0]) / math.log(2.0)
         return yrel * torch.exp(self.log_stiffness) * 0.5 * qhat**self.power * g
 
     def taylor(self, qhat, static, yhat, yrel):
@@ -362,19 +361,7 @@ class ElementEnergy(nn.Module):
         g = nn.functional.softplus(o) / ln2
         g1 = sg * do / ln2
         g2 = (sg * (1 - sg) * do**2 + sg * d2o) / ln2
-        g, g1, g2 = (floored(v, self.g_min, i > 0) for i, v in enumerate((g, g1, g2)))
         return _powered(self.power, yrel * torch.exp(self.log_stiffness), qhat, g, g1, g2)
-
-
-def floored(g, g_min: float, derivative: bool = False):
-    """``g_min + (1 - g_min) g`` (with ``derivative``, ``(1 - g_min) g``): the element
-    factor ``g`` kept above ``g_min`` (``EnergyConfig.g_min``; 0 leaves ``g`` as it is, bit
-    for bit). With ``g_min > 0`` every element's energy is at least ``g_min`` times the one
-    with ``g = 1``: an edge's grows like its squared stretch however far it stretches or
-    shortens, so the energy is coercive and no element can lose its stiffness."""
-    if not g_min:
-        return g
-    return (1 - g_min) * g if derivative else g_min + (1 - g_min) * g
 
 
 def _powered(power: int, c, q, g, g1=None, g2=None):
@@ -505,7 +492,7 @@ class EnergySystem:
             dof = where[self._dofs(kind, N)]
             keep = ((dof[:, :, None] >= 0) & (dof[:, None, :] >= 0)).reshape(-1)
             flat = (dof[:, :, None] * n + dof[:, None, :]).reshape(-1)
-            H = H.index_add(1, flat[keep], he.reshape(B, -1)[:, keep])
+            H.index_add_(1, flat[keep], he.reshape(B, -1)[:, keep])
         return H.reshape(B, n, n)
 
 
@@ -576,10 +563,6 @@ class BatchedEnergy:
         for t, k in enumerate(kinds):
             self.coef[t, :, :self.counts[t]] = sys.scale(k) * torch.exp(sys.terms[k].log_stiffness)
         self.sigma = [float(sys.sigma[k]) for k in kinds]
-        floors = {sys.terms[k].g_min for k in kinds}
-        if len(floors) != 1:
-            raise ValueError(f"BatchedEnergy: every element type needs the same g_min, got {floors}")
-        self.g_min = floors.pop()
 
     def _mlp(self, qhat, idx, order: int):
         """``(g, g', g'')`` of all types' elements ``(T, b, nmax)`` at ``qhat (T, b, nmax)``
@@ -602,16 +585,16 @@ class BatchedEnergy:
             dz = torch.bmm(w, dz) if order > 0 else None
             d2z = torch.bmm(w, d2z) if d2z is not None else None
         o = z.reshape(T, b, nmax)
-        ln2, g_min = math.log(2.0), self.g_min
-        g = floored(nn.functional.softplus(o) / ln2, g_min)
+        ln2 = math.log(2.0)
+        g = nn.functional.softplus(o) / ln2
         if order == 0:
             return g, None, None
         sg, do = torch.sigmoid(o), dz.expand(T, 1, b * nmax).reshape(T, b, nmax)
-        g1 = floored(sg * do / ln2, g_min, True)
+        g1 = sg * do / ln2
         if order == 1:
             return g, g1, None
         d2o = torch.zeros_like(o) if d2z is None else d2z.reshape(T, b, nmax)
-        return g, g1, floored((sg * (1 - sg) * do**2 + sg * d2o) / ln2, g_min, True)
+        return g, g1, (sg * (1 - sg) * do**2 + sg * d2o) / ln2
 
     @torch.no_grad()
     def evaluate(self, x: torch.Tensor, idx: torch.Tensor, order: int):

@@ -116,36 +116,3 @@ def test_features_prior_trains_and_reloads(tmp_path):
         b = again.rollout(tr.pos[:1, 0], tr.vel[:1, 0], tr.youngs[:1], tr.t)[0]
     assert torch.isfinite(a).all() and torch.equal(a, b)
 
-
-def test_g_min_keeps_a_softening_energy_coercive():
-    """``EnergyConfig.g_min`` (issue 38, item 2): an edge term whose MLP softens with the
-    stretch (``g -> 0``: a bounded energy, as the first trained models of the hanging sheet
-    had in compression) keeps at least ``g_min`` of the ``g = 1`` energy and grows without
-    bound; 0 leaves ``g`` as it is; invalid values name the field; old configurations read 0."""
-    from meshodenet.energy import ElementEnergy, floored
-
-    q = torch.linspace(0, 400, 81, dtype=torch.float64)
-    zero, one = torch.zeros(len(q), dtype=torch.float64), torch.ones(len(q), dtype=torch.float64)
-    energies = {}
-    for g_min in (0.0, 0.2):
-        term = ElementEnergy("edge", 4, 1, g_min).double()
-        with torch.no_grad():  # one hidden unit, output -0.05 q: g decays like exp(-0.05 q)
-            lin, out = term.mlp[0], term.mlp[2]
-            lin.weight.zero_()
-            lin.bias.zero_()
-            lin.weight[0, 0] = 1.0
-            out.weight[0, 0] = -0.05
-        static = torch.zeros(len(q), lin.in_features - 2, dtype=torch.float64)
-        energies[g_min] = term(q, static, zero, one)
-    soft, floor = energies[0.0], energies[0.2]
-    assert soft.argmax() < len(q) - 1 and soft[-1] < 0.01 * soft.max()  # bounded
-    assert torch.all(floor >= 0.2 * 0.5 * q**2 - 1e-12) and torch.all(floor.diff() > 0)
-    g = torch.rand(5, dtype=torch.float64)
-    assert floored(g, 0.0) is g and floored(g, 0.0, True) is g
-    assert torch.allclose(floored(g, 0.2), 0.2 + 0.8 * g)
-    assert torch.allclose(floored(g, 0.2, True), 0.8 * g)
-    for bad in (-0.1, 1.0, float("nan"), True):
-        with pytest.raises(ValueError, match=rf"EnergyConfig\.g_min .*{bad!r}"):
-            EnergyConfig(g_min=bad)
-    old = {k: v for k, v in dataclasses.asdict(EnergyConfig()).items() if k != "g_min"}
-    assert get_model_spec("implicit_energy").config_from_dict(old).g_min == 0.0

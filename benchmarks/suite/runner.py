@@ -375,16 +375,14 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
         runs_dir = runs_dir.resolve()
         data_dir = store.data_dir(data_dir).resolve()
         plugin_files = tuple(str(Path(p).resolve()) for p in plugin_files)
-    order = procs.longest_first([r.run_id for r in runs], costs)
-    if order != [r.run_id for r in runs]:
+    order = procs.longest_first(list(by_id), costs)
+    if order != list(by_id):
         _log("start order (longest recorded training first): " + ", ".join(order))
-    by_order = {r.run_id: r for r in runs}
-    runs_started = [by_order[k] for k in order]
     tasks = {r.run_id: (execute_run, (r, str(runs_dir / r.run_id),
                                       None if data_dir is None else str(data_dir), threads,
                                       tuple(str(p) for p in plugin_files),
                                       progress and jobs == 1 and executor == "local", device))
-             for r in runs_started}
+             for r in (by_id[k] for k in order)}
     done = []
 
     def on_result(run_id, kind, value):

@@ -77,7 +77,7 @@ class ImplicitEnergy(TrajectoryModel):
         self.kinds = [k for k in TYPES if k in feats and len(feats[k][0])
                       and not (k == "dihedral" and self.planar)]
         # float64 throughout: Newton resolves stiff springs' stretches of 1e-5
-        self.terms = nn.ModuleDict({k: ElementEnergy(k, config.hidden, config.layers, config.g_min)
+        self.terms = nn.ModuleDict({k: ElementEnergy(k, config.hidden, config.layers)
                                     for k in self.kinds}).double()
         f64 = dict(dtype=torch.float64)
         x0 = torch.as_tensor(mesh.rest_pos, **f64)
@@ -552,9 +552,8 @@ class ImplicitEnergy(TrajectoryModel):
         sys = self.system(data.youngs[traj])
         act = self._active(xk, vk)
         geo = sys.geometry(x1)
-        exact = self.config.exact_loss_gradient
-        A = self._matrix(sys, x1, h, act, geo, xk, create_graph=True) if exact \
-            else self._matrix(sys, x1, h, act, geo, xk)
+        A = self._matrix(sys, x1, h, act, geo, xk,
+                         create_graph=self.config.exact_loss_gradient)
         r = self._residual(sys, x1, xk, vk, h, create_graph=True, geo=geo)[:, act]
         d = self._solve(A, r)
         n = len(self.free.nonzero())

@@ -19,9 +19,7 @@ class EnergyConfig:
     the one-step loss ``|A^{-1} r|^2`` differentiated with its matrix ``A`` on the parameters'
     graph too (its exact gradient; False, the default, holds ``A`` fixed: a cheaper surrogate
     that serves the rod and the in-plane plate but is no descent direction on
-    ``plate_hanging``, docs/ENERGY.md "Training"); ``g_min``: the least value of each
-    element's factor ``g``, in ``[0, 1)`` (``meshodenet.energy.floored``; 0, the default,
-    leaves it unbounded below; > 0 keeps every element stiff: a coercive energy)."""
+    ``plate_hanging``, docs/ENERGY.md "Training")."""
 
     hidden: int = 32
     layers: int = 2
@@ -30,16 +28,12 @@ class EnergyConfig:
     newton_max_iter: int = 30
     stiffness_prior: str = "uniform"
     exact_loss_gradient: bool = False
-    g_min: float = 0.0
 
     def __post_init__(self):
         for name, lo in (("hidden", 1), ("layers", 0), ("shooting", 0), ("newton_max_iter", 1)):
             check_int(self, name, lo)
         owner = type(self).__name__
         check_nonnegative(owner, "newton_rtol", self.newton_rtol)
-        check_nonnegative(owner, "g_min", self.g_min)
-        if not self.g_min < 1:
-            raise ValueError(f"{owner}.g_min must be in [0, 1), got {self.g_min!r}")
         if not isinstance(self.exact_loss_gradient, bool):
             raise ValueError(f"{owner}.exact_loss_gradient must be a bool, "
                              f"got {self.exact_loss_gradient!r}")
