@@ -54,6 +54,25 @@ def test_table_mean_std_and_relative_increase():
     assert np.allclose(tab[tab.model == "meshodenet"].increase_vs_meshodenet_pct, 0.0)
 
 
+def test_a_diverged_trajectory_makes_its_step_nan_never_left_out():
+    """One trajectory of two NaN from frame 2 on (its rollout diverged): the table's mean and
+    std at step 3 are NaN (pandas would average the finite one), step 1 is untouched, and the
+    other model's rows keep their values."""
+    t = np.arange(4) * 0.1
+    true = np.zeros((2, 4, 1, 3))
+    a = np.ones_like(true)
+    b = a.copy()
+    b[1, 2:] = np.nan
+    df = pd.concat([tidy_metrics(a, true, t, {"case": "c", "model": "meshodenet"}),
+                    tidy_metrics(b, true, t, {"case": "c", "model": "mgn"})])
+    tab = rmse_at_step_table(df, {"c": (1, 3)}).set_index(["model", "step"])
+    assert np.isnan(tab.loc[("mgn", 3), ["rmse_mean", "rmse_std", "rmse_coord_mean",
+                                         "rmse_coord_std"]].to_numpy(float)).all()
+    assert tab.loc[("mgn", 3), "n_trajectories"] == 2
+    assert tab.loc[("mgn", 1), "rmse_mean"] == pytest.approx(np.sqrt(3))
+    assert tab.loc[("meshodenet", 3), "rmse_mean"] == pytest.approx(np.sqrt(3))
+
+
 def test_per_coordinate_rmse_is_the_authors_formula_and_a_third_of_the_squared_norm():
     """The authors' evaluation: sqrt of the mean over nodes and coordinates of the squared
     error (their evaluation notebook's compute_rmse on (nodes, 3) arrays); by hand on one node,

@@ -117,7 +117,9 @@ def rmse_at_step_table(metrics: pd.DataFrame, steps: dict | None = None,
 
     ``metrics`` has columns ``case, model, trajectory, step, rmse`` (other id columns such as
     ``integrator`` or ``seed`` are kept as grouping keys). The std is the population std
-    (ddof=0) over trajectories, as a spread, not an error of the mean.
+    (ddof=0) over trajectories, as a spread, not an error of the mean. A step at which any
+    trajectory's RMSE is NaN (its rollout diverged) has NaN mean and std: pandas would
+    otherwise average the others and hide the diverged one.
     """
     steps = PAPER_STEPS if steps is None else steps
     keys = [c for c in metrics.columns if c not in ("trajectory", "step", "time", "rmse")]
@@ -128,9 +130,14 @@ def rmse_at_step_table(metrics: pd.DataFrame, steps: dict | None = None,
         sel = sel.assign(rmse_coord=sel["rmse"] * PER_COORDINATE)
         g = sel.groupby(keys + ["step"], sort=True)
         r, c = g["rmse"], g["rmse_coord"]
-        rows.append(pd.DataFrame({"rmse_mean": r.mean(), "rmse_std": r.std(ddof=0),
-                                  "rmse_coord_mean": c.mean(), "rmse_coord_std": c.std(ddof=0),
-                                  "n_trajectories": r.size()}).reset_index())
+        part = pd.DataFrame({"rmse_mean": r.mean(), "rmse_std": r.std(ddof=0),
+                             "rmse_coord_mean": c.mean(), "rmse_coord_std": c.std(ddof=0),
+                             "n_trajectories": r.size()})
+        # a diverged trajectory (NaN) is never left out of the mean: the row is NaN
+        gone = sel["rmse"].isna().groupby([sel[k] for k in keys + ["step"]], sort=True).any()
+        part.loc[gone.reindex(part.index).to_numpy(bool),
+                 ["rmse_mean", "rmse_std", "rmse_coord_mean", "rmse_coord_std"]] = np.nan
+        rows.append(part.reset_index())
     table = pd.concat(rows, ignore_index=True) if rows else pd.DataFrame(
         columns=keys + ["step", "rmse_mean", "rmse_std", "rmse_coord_mean", "rmse_coord_std",
                         "n_trajectories"])
