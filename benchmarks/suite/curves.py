@@ -309,7 +309,8 @@ def quick_points(quick_dir: Path) -> pd.DataFrame:
     per_run = []
     for metric, step_of in (("rmse_at_step", None), ("full_rollout_rmse", ALL_STEPS)):
         d = met[met["metric"] == metric]
-        g = d.groupby(["run", "step"] if step_of is None else ["run"])["rmse"].mean()
+        g = d.groupby(["run", "step"] if step_of is None else ["run"])["rmse"].agg(
+            lambda s: s.mean(skipna=False))  # a diverged trajectory makes its run's row NaN
         g = g.reset_index()
         if step_of is not None:
             g["step"] = step_of

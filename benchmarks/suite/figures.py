@@ -73,7 +73,9 @@ def rmse_vs_step(metrics: pd.DataFrame, case: str, path: Path) -> Path:
     few = m.groupby(groups).ngroups <= 2  # model colours; otherwise one colour per line
     for i, (key, d) in enumerate(m.groupby(groups, sort=True)):
         g = (d["rmse"] * PER_COORDINATE).groupby(d["step"])
-        mean, lo, hi = g.mean(), g.min(), g.max()
+        # NaN (a diverged trajectory) ends the line there: never averaged away
+        mean, lo, hi = (g.agg(lambda s, f=f: getattr(s, f)(skipna=False))
+                        for f in ("mean", "min", "max"))
         label = _scheme_label(*key)
         c = _color(key[0], i) if few else f"C{i}"
         ax.plot(mean.index, mean.values, color=c, label=label)
