@@ -330,21 +330,24 @@ class ElementEnergy(nn.Module):
         self.mlp = zero_output_mlp(2 + N_STATIC, hidden, layers)
         self.log_stiffness = nn.Parameter(torch.zeros(()))
 
-    def forward(self, qhat, static, yhat, yrel):
-        inp = torch.cat([qhat[..., None], static, yhat[..., None]], -1)
+    def forward(self, qhat, static, yhat, yrel, qrange=None):
+        """``qrange``: ``(lo, hi)`` the MLP's input ``qhat`` is clamped to (``clamp_q``)."""
+        qin = qhat if qrange is None else torch.clamp(qhat, qrange[0], qrange[1])
+        inp = torch.cat([qin[..., None], static, yhat[..., None]], -1)
         g = nn.functional.softplus(self.mlp(inp)[..., 0]) / math.log(2.0)
         return yrel * torch.exp(self.log_stiffness) * 0.5 * qhat**self.power * g
 
-    def taylor(self, qhat, static, yhat, yrel):
+    def taylor(self, qhat, static, yhat, yrel, qrange=None):
         """``(U, dU/dqhat, d2U/dqhat2)``, propagated through the MLP in forward mode by hand
         (no autograd graph of its own: differentiable in the parameters, and about three times
-        cheaper than double backward)."""
-        z = torch.cat([qhat[..., None], static, yhat[..., None]], -1)
+        cheaper than double backward); ``qrange`` as ``forward``."""
+        qin, inside = _clamped(qhat, qrange)
+        z = torch.cat([qin[..., None], static, yhat[..., None]], -1)
         dz = d2z = None
         for layer in self.mlp:
             if isinstance(layer, nn.Linear):
                 w = layer.weight
-                dz = w[:, 0].expand(*z.shape[:-1], -1) if dz is None else dz @ w.T
+                dz = w[:, 0] * inside[..., None] if dz is None else dz @ w.T
                 d2z = None if d2z is None else d2z @ w.T
                 z = layer(z)
             else:  # SiLU: a = z s(z)
@@ -362,6 +365,15 @@ class ElementEnergy(nn.Module):
         g1 = sg * do / ln2
         g2 = (sg * (1 - sg) * do**2 + sg * d2o) / ln2
         return _powered(self.power, yrel * torch.exp(self.log_stiffness), qhat, g, g1, g2)
+
+
+def _clamped(qhat, qrange):
+    """``qhat`` clamped to ``qrange = (lo, hi)`` (or as it is, ``None``) and ``d/dqhat`` of
+    the clamp (1 inside, 0 outside)."""
+    if qrange is None:
+        return qhat, torch.ones_like(qhat)
+    return torch.clamp(qhat, qrange[0], qrange[1]), ((qhat >= qrange[0])
+                                                    & (qhat <= qrange[1])).to(qhat.dtype)
 
 
 def _powered(power: int, c, q, g, g1=None, g2=None):
@@ -383,8 +395,10 @@ class EnergySystem:
     parameters, and the network is evaluated on the scalars ``q`` only."""
 
     def __init__(self, terms: nn.ModuleDict, elems: dict, sigma: dict, youngs, ybar: float,
-                 ylog: tuple, analytic: bool = True, prior: dict | None = None):
+                 ylog: tuple, analytic: bool = True, prior: dict | None = None,
+                 qrange: dict | None = None):
         self.terms, self.elems, self.sigma = terms, elems, sigma
+        self.qrange = qrange or {}  # per kind (lo, hi) of the MLP's input (clamp_q)
         self.analytic = analytic  # rod hinges' geometry by hand (else torch.func, as before)
         self.prior = prior or {}  # per kind: each element's fixed stiffness factor kappa (n,)
         y = youngs.to(torch.float64)
@@ -436,7 +450,8 @@ class EnergySystem:
         nodes, static, _, _ = self.elems[kind]
         n = len(nodes)
         return self.terms[kind](q / self.sigma[kind], static.expand(self.B, n, -1),
-                                self.yhat[:, None].expand(self.B, n), self.scale(kind))
+                                self.yhat[:, None].expand(self.B, n), self.scale(kind),
+                                self.qrange.get(kind))
 
     def derivatives(self, kind, q, order: int, create_graph: bool):
         """``(U'(q), U''(q) or None)`` per element ``(B, n)`` (on the parameters' graph with
@@ -446,7 +461,7 @@ class EnergySystem:
         with torch.set_grad_enabled(create_graph and torch.is_grad_enabled()):
             _, d1, d2 = self.terms[kind].taylor(
                 q / sig, static.expand(self.B, n, -1), self.yhat[:, None].expand(self.B, n),
-                self.scale(kind))
+                self.scale(kind), self.qrange.get(kind))
         return d1 / sig, (d2 / sig**2 if order > 1 else None)
 
     def energy(self, x: torch.Tensor) -> torch.Tensor:
@@ -563,6 +578,10 @@ class BatchedEnergy:
         for t, k in enumerate(kinds):
             self.coef[t, :, :self.counts[t]] = sys.scale(k) * torch.exp(sys.terms[k].log_stiffness)
         self.sigma = [float(sys.sigma[k]) for k in kinds]
+        #: (T, 2, 1, 1): each type's clamp of qhat (clamp_q; else none)
+        self.qrange = torch.stack([torch.as_tensor(sys.qrange.get(k, (-math.inf, math.inf)),
+                                                   dtype=w0.dtype, device=w0.device)
+                                   for k in kinds])[..., None, None]
 
     def _mlp(self, qhat, idx, order: int):
         """``(g, g', g'')`` of all types' elements ``(T, b, nmax)`` at ``qhat (T, b, nmax)``
@@ -570,9 +589,10 @@ class BatchedEnergy:
         ``order``)."""
         T, b, nmax = qhat.shape
         c1 = self.c1 if b == self.c1.shape[2] else self.c1[:, :, idx]  # idx: all or a subset
-        z = torch.addcmul(c1, qhat[:, None], self.w0q[..., None, None])
+        qin, inside = _clamped(qhat, (self.qrange[:, 0], self.qrange[:, 1]))
+        z = torch.addcmul(c1, qin[:, None], self.w0q[..., None, None])
         z = z.reshape(T, -1, b * nmax)                                   # (T, h, M)
-        dz, d2z = self.w0q[..., None].expand_as(z), None
+        dz, d2z = self.w0q[..., None] * inside.reshape(T, 1, -1), None
         for w, bias in self.layers:  # SiLU, then the next linear layer
             # fused kernels: silu_backward(u, z) = u silu'(z), sigmoid_backward(u, s) = u s (1 - s)
             if order > 1:

@@ -93,6 +93,8 @@ class ImplicitEnergy(TrajectoryModel):
             self.register_buffer(f"{k}_sigma", torch.ones((), **f64))
             if config.stiffness_prior == "features":  # the fixed factor kappa_e per element
                 self.register_buffer(f"{k}_prior", torch.ones(len(nodes), **f64))
+            if config.clamp_q:  # the training frames' range of qhat (its MLP's input)
+                self.register_buffer(f"{k}_qrange", torch.tensor([-math.inf, math.inf], **f64))
         for name in ("mass", "damping"):
             self.register_buffer(name, torch.as_tensor(getattr(mesh, name), **f64))
         self.register_buffer("force", torch.as_tensor(mesh.force, **f64))
@@ -123,7 +125,9 @@ class ImplicitEnergy(TrajectoryModel):
         return EnergySystem(self.terms, self._elems(),
                             {k: getattr(self, f"{k}_sigma") for k in self.kinds},
                             youngs, float(s[0]), (float(s[1]), float(s[2])),
-                            analytic=self.solver != "reference", prior=self._prior())
+                            analytic=self.solver != "reference", prior=self._prior(),
+                            qrange={k: getattr(self, f"{k}_qrange") for k in self.kinds}
+                            if self.config.clamp_q else None)
 
     def _active(self, x0, v0) -> torch.Tensor:
         """Indices into the ``3N`` coordinates that Newton solves for."""
@@ -459,6 +463,9 @@ class ImplicitEnergy(TrajectoryModel):
             q = measure(k, pos[:, :, nodes], rest, l0)
             rms = float(torch.sqrt((q**2).mean()))
             getattr(self, f"{k}_sigma").fill_(rms if rms > 0 else 1.0)
+            if self.config.clamp_q:
+                qh = q / getattr(self, f"{k}_sigma")
+                getattr(self, f"{k}_qrange").copy_(torch.stack([qh.min(), qh.max()]))
 
     def _frames(self, data: Trajectories, samples: torch.Tensor):
         """``(traj, x_k, v_k, x_{k+1}, h)`` of samples: ``v_k`` the backward difference

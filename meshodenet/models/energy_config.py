@@ -19,7 +19,10 @@ class EnergyConfig:
     the one-step loss ``|A^{-1} r|^2`` differentiated with its matrix ``A`` on the parameters'
     graph too (its exact gradient; False, the default, holds ``A`` fixed: a cheaper surrogate
     that serves the rod and the in-plane plate but is no descent direction on
-    ``plate_hanging``, docs/ENERGY.md "Training")."""
+    ``plate_hanging``, docs/ENERGY.md "Training"); ``clamp_q``: each element MLP sees its
+    measure ``qhat`` clamped to the range the training frames span (``g`` constant beyond it,
+    so the element energy is quadratic there, never softening where no data constrained it;
+    docs/ENERGY.md "Bending")."""
 
     hidden: int = 32
     layers: int = 2
@@ -28,15 +31,16 @@ class EnergyConfig:
     newton_max_iter: int = 30
     stiffness_prior: str = "uniform"
     exact_loss_gradient: bool = False
+    clamp_q: bool = False
 
     def __post_init__(self):
         for name, lo in (("hidden", 1), ("layers", 0), ("shooting", 0), ("newton_max_iter", 1)):
             check_int(self, name, lo)
         owner = type(self).__name__
         check_nonnegative(owner, "newton_rtol", self.newton_rtol)
-        if not isinstance(self.exact_loss_gradient, bool):
-            raise ValueError(f"{owner}.exact_loss_gradient must be a bool, "
-                             f"got {self.exact_loss_gradient!r}")
+        for name in ("exact_loss_gradient", "clamp_q"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{owner}.{name} must be a bool, got {getattr(self, name)!r}")
         if not self.newton_rtol > 0:
             raise ValueError(f"{owner}.newton_rtol must be > 0, got {self.newton_rtol!r}")
         if self.stiffness_prior not in STIFFNESS_PRIORS:
