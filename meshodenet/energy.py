@@ -33,7 +33,8 @@ by its fixed factor ``kappa_k > 0``, a function of its rest features only. The g
 derivatives ``dq/dx``, ``d2q/dx2`` are analytic (``_edge_geometry``, ``_hinge_geometry``,
 ``_dihedral_geometry``; ``EnergySystem(analytic=False)`` takes the rod hinges' from
 ``torch.func``, as before issue 38). ``BatchedEnergy`` evaluates the energy for a rollout's
-batched Newton solves: banded Hessian, one MLP pass for all element types.
+batched Newton solves: banded Hessian, one MLP pass for all element types. The element energies
+(``ElementEnergy``, ``clamp_q``'s saturation) live in ``meshodenet.energy_element``.
 """
 
 from __future__ import annotations
@@ -46,10 +47,18 @@ from torch import nn
 from torch.func import hessian, jacrev, vmap
 
 from meshodenet.data import Mesh
+from meshodenet.energy_element import (  # noqa: F401  (re-exported)
+    N_STATIC,
+    POWER,
+    SATURATION,
+    ElementEnergy,
+    _clamped,
+    _powered,
+    zero_output_mlp,
+)
 from meshodenet.graph import band_order, rod_hinges, triangle_hinges
 
 TYPES = ("edge", "hinge", "dihedral")
-N_STATIC = 4
 
 
 def _curvature(e: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
@@ -301,91 +310,6 @@ def _dihedral_geometry(x, nodes, theta0, second: bool):
     return d * d, dq, D.T @ d2q @ D
 
 
-#: the energy's dependence on the normalised invariant at small strain: quadratic in an edge's
-#: stretch, linear in a hinge's squared curvature or squared change of dihedral angle
-#: (quadratic in the curvature and the angle)
-POWER = {"edge": 2, "hinge": 1, "dihedral": 1}
-
-
-def zero_output_mlp(inputs: int, hidden: int, layers: int) -> nn.Sequential:
-    """``layers`` hidden layers of ``hidden`` (SiLU) from ``inputs`` to one output, the last
-    layer zero (the output starts at 0, so ``softplus(out) / ln 2`` starts at 1)."""
-    dims = [inputs] + [hidden] * layers
-    mods = []
-    for a, b in zip(dims[:-1], dims[1:]):
-        mods += [nn.Linear(a, b), nn.SiLU()]
-    last = nn.Linear(dims[-1], 1)
-    nn.init.zeros_(last.weight)
-    nn.init.zeros_(last.bias)
-    return nn.Sequential(*mods, last)
-
-
-class ElementEnergy(nn.Module):
-    """``U = Y/Ybar exp(a) 1/2 qhat^p g(qhat, s, yhat)`` of one element type
-    (``p = POWER[kind]``)."""
-
-    def __init__(self, kind: str, hidden: int, layers: int):
-        super().__init__()
-        self.power = POWER[kind]
-        self.mlp = zero_output_mlp(2 + N_STATIC, hidden, layers)
-        self.log_stiffness = nn.Parameter(torch.zeros(()))
-
-    def forward(self, qhat, static, yhat, yrel, qrange=None):
-        """``qrange``: ``(lo, hi)`` the MLP's input ``qhat`` is clamped to (``clamp_q``)."""
-        qin = qhat if qrange is None else torch.clamp(qhat, qrange[0], qrange[1])
-        inp = torch.cat([qin[..., None], static, yhat[..., None]], -1)
-        g = nn.functional.softplus(self.mlp(inp)[..., 0]) / math.log(2.0)
-        return yrel * torch.exp(self.log_stiffness) * 0.5 * qhat**self.power * g
-
-    def taylor(self, qhat, static, yhat, yrel, qrange=None):
-        """``(U, dU/dqhat, d2U/dqhat2)``, propagated through the MLP in forward mode by hand
-        (no autograd graph of its own: differentiable in the parameters, and about three times
-        cheaper than double backward); ``qrange`` as ``forward``."""
-        qin, inside = _clamped(qhat, qrange)
-        z = torch.cat([qin[..., None], static, yhat[..., None]], -1)
-        dz = d2z = None
-        for layer in self.mlp:
-            if isinstance(layer, nn.Linear):
-                w = layer.weight
-                dz = w[:, 0] * inside[..., None] if dz is None else dz @ w.T
-                d2z = None if d2z is None else d2z @ w.T
-                z = layer(z)
-            else:  # SiLU: a = z s(z)
-                sg = torch.sigmoid(z)
-                a1 = sg * (1 + z * (1 - sg))
-                a2 = sg * (1 - sg) * (2 + z * (1 - 2 * sg))
-                d2z = a2 * dz**2 + (0 if d2z is None else a1 * d2z)
-                dz = a1 * dz
-                z = z * sg
-        o, do = z[..., 0], dz[..., 0]
-        d2o = torch.zeros_like(o) if d2z is None else d2z[..., 0]
-        sg = torch.sigmoid(o)
-        ln2 = math.log(2.0)
-        g = nn.functional.softplus(o) / ln2
-        g1 = sg * do / ln2
-        g2 = (sg * (1 - sg) * do**2 + sg * d2o) / ln2
-        return _powered(self.power, yrel * torch.exp(self.log_stiffness), qhat, g, g1, g2)
-
-
-def _clamped(qhat, qrange):
-    """``qhat`` clamped to ``qrange = (lo, hi)`` (or as it is, ``None``) and ``d/dqhat`` of
-    the clamp (1 inside, 0 outside)."""
-    if qrange is None:
-        return qhat, torch.ones_like(qhat)
-    return torch.clamp(qhat, qrange[0], qrange[1]), ((qhat >= qrange[0])
-                                                    & (qhat <= qrange[1])).to(qhat.dtype)
-
-
-def _powered(power: int, c, q, g, g1=None, g2=None):
-    """``(U, dU/dq, d2U/dq2)`` of ``U = c/2 q^p g(q)`` (``p = power``, 1 or 2) from ``g`` and
-    its derivatives ``g1``, ``g2`` (a derivative is ``None`` where ``g``'s is)."""
-    if power == 2:
-        return (c * 0.5 * q**2 * g, None if g1 is None else c * (q * g + 0.5 * q**2 * g1),
-                None if g2 is None else c * (g + 2 * q * g1 + 0.5 * q**2 * g2))
-    return (c * 0.5 * q * g, None if g1 is None else c * 0.5 * (g + q * g1),
-            None if g2 is None else c * (g1 + 0.5 * q * g2))
-
-
 class EnergySystem:
     """The learned energy of one mesh for a batch of ``B`` moduli, in float64.
 
@@ -578,7 +502,8 @@ class BatchedEnergy:
         for t, k in enumerate(kinds):
             self.coef[t, :, :self.counts[t]] = sys.scale(k) * torch.exp(sys.terms[k].log_stiffness)
         self.sigma = [float(sys.sigma[k]) for k in kinds]
-        #: (T, 2, 1, 1): each type's clamp of qhat (clamp_q; else none)
+        #: (T, 2, 1, 1): each type's range of qhat (clamp_q; else none)
+        self.clamp = bool(sys.qrange)
         self.qrange = torch.stack([torch.as_tensor(sys.qrange.get(k, (-math.inf, math.inf)),
                                                    dtype=w0.dtype, device=w0.device)
                                    for k in kinds])[..., None, None]
@@ -589,10 +514,14 @@ class BatchedEnergy:
         ``order``)."""
         T, b, nmax = qhat.shape
         c1 = self.c1 if b == self.c1.shape[2] else self.c1[:, :, idx]  # idx: all or a subset
-        qin, inside = _clamped(qhat, (self.qrange[:, 0], self.qrange[:, 1]))
+        qin, s1, s2 = _clamped(qhat, (self.qrange[:, 0], self.qrange[:, 1])) if self.clamp \
+            else (qhat, None, None)
         z = torch.addcmul(c1, qin[:, None], self.w0q[..., None, None])
         z = z.reshape(T, -1, b * nmax)                                   # (T, h, M)
-        dz, d2z = self.w0q[..., None] * inside.reshape(T, 1, -1), None
+        dz, d2z = self.w0q[..., None].expand_as(z), None
+        if self.clamp:
+            dz = dz * s1.reshape(T, 1, -1)
+            d2z = self.w0q[..., None] * s2.reshape(T, 1, -1) if order > 1 else None
         for w, bias in self.layers:  # SiLU, then the next linear layer
             # fused kernels: silu_backward(u, z) = u silu'(z), sigmoid_backward(u, s) = u s (1 - s)
             if order > 1:

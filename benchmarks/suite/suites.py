@@ -156,9 +156,11 @@ register_suite(Suite(
     "docs/ENERGY.md), quick preset, and the case's solver at the sampling interval",
     _both("plate_hanging", "quick")
     # the one-step loss's exact gradient: its fixed-matrix surrogate is no descent direction
-    # on this case (docs/ENERGY.md, "Bending")
+    # on this case; the MLPs' inputs saturating beyond the training range: without it the
+    # energies after the first epoch soften where an edge is compressed beyond the data and
+    # fail Newton (docs/ENERGY.md, "Bending")
     + (RunSpec("plate_hanging", "implicit_energy", "quick",
-               overrides=("model.exact_loss_gradient=true",)),)
+               overrides=("model.exact_loss_gradient=true", "model.clamp_q=true")),)
     + _solver("plate_hanging"), compare_rtol=0.05))
 register_suite(Suite(
     "integrators", "MeshODENet on rod_falling (quick preset) with euler / midpoint / rk4 / "
