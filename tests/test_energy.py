@@ -50,10 +50,14 @@ def test_gradient_and_hessian_match_finite_differences(make, prior):
     arrays = make()
     model, tr = _model(arrays, stiffness_prior=prior)
     sys = model.system(tr.youngs[:2])
-    x = _perturbed(arrays)
+    check_energy_derivatives(sys, _perturbed(arrays))
+
+
+def check_energy_derivatives(sys, x, eps=1e-7):
+    """``sys``'s gradient and Hessian at ``x (2, N, 3)`` against central differences of its
+    energy and gradient (every other coordinate); the Hessian symmetric."""
     g = sys.gradient(x)
     H = sys.hessian(x)
-    eps = 1e-7
     flat = x.reshape(2, -1)
     for i in range(0, flat.shape[1], 2):
         d = torch.zeros_like(flat)

@@ -19,7 +19,7 @@ from meshodenet.energy import SATURATION, BatchedEnergy, measure
 from meshodenet.models.energy import EnergyConfig
 from meshodenet.registry import get_model_spec, load_model
 from tests.conftest import rod_arrays, strip_arrays
-from tests.test_energy import _model, _perturbed
+from tests.test_energy import _model, _perturbed, check_energy_derivatives
 
 
 def _clamped_model(make):
@@ -45,17 +45,7 @@ def test_clamped_gradient_and_hessian_match_finite_differences(make):
     for k, (q, _, _) in sys.geometry(x).items():  # the check covers both sides of the clamp
         qh, (lo, hi) = q / sys.sigma[k], sys.qrange[k]
         assert bool(((qh > lo) & (qh < hi)).any()) and bool(((qh < lo) | (qh > hi)).any())
-    g, H = sys.gradient(x), sys.hessian(x)
-    eps = 1e-7
-    flat = x.reshape(2, -1)
-    for i in range(0, flat.shape[1], 2):
-        d = torch.zeros_like(flat)
-        d[:, i] = eps
-        xp, xm = (flat + d).reshape(x.shape), (flat - d).reshape(x.shape)
-        fd = (sys.energy(xp) - sys.energy(xm)) / (2 * eps)
-        assert torch.allclose(g.reshape(2, -1)[:, i], fd, rtol=1e-5, atol=1e-7 * g.abs().max())
-        fdh = (sys.gradient(xp) - sys.gradient(xm)).reshape(2, -1) / (2 * eps)
-        assert torch.allclose(H[:, :, i], fdh, rtol=1e-4, atol=1e-6 * H.abs().max())
+    check_energy_derivatives(sys, x)
 
 
 def test_beyond_the_range_an_edge_energy_is_quadratic():
