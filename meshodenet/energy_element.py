@@ -59,8 +59,10 @@ class ElementEnergy(nn.Module):
             if isinstance(layer, nn.Linear):
                 w = layer.weight
                 if dz is None:  # the input layer; d2z None: the identity's s'' = 0
-                    dz = w[:, 0] * s1[..., None]
-                    d2z = None if qrange is None else w[:, 0] * s2[..., None]
+                    if qrange is None:
+                        dz = w[:, 0].expand(*z.shape[:-1], -1)
+                    else:
+                        dz, d2z = w[:, 0] * s1[..., None], w[:, 0] * s2[..., None]
                 else:
                     dz, d2z = dz @ w.T, None if d2z is None else d2z @ w.T
                 z = layer(z)
@@ -89,9 +91,9 @@ def _clamped(qhat, qrange):
     """``(s, s', s'')``: the MLP's input ``s(qhat)``, ``qhat`` itself inside ``qrange = (lo,
     hi)`` and saturating beyond it, ``hi + w tanh((qhat - hi) / w)`` (``w = SATURATION``; twice
     differentiable, so the energy's Hessian is continuous), and its derivatives; ``None``:
-    ``(qhat, 1, 0)``."""
+    ``(qhat, None, None)`` (the identity: no derivative factors to apply)."""
     if qrange is None:
-        return qhat, torch.ones_like(qhat), torch.zeros_like(qhat)
+        return qhat, None, None
     w, lo, hi = SATURATION, qrange[0], qrange[1]
     d = torch.where(qhat > hi, qhat - hi, torch.where(qhat < lo, qhat - lo, 0 * qhat))
     t = torch.tanh(d / w)
