@@ -15,6 +15,11 @@ without a hinge (rod ends) get ``a = 0``. The paper's angle "formed by the two e
 Edge features of the directed edge ``i -> j``: ``[l0, d0 (3)] | [l, d (3)]``, rest and current
 length and unit direction of ``x_j - x_i``.
 
+``layout = "authors"`` (``LAYOUTS``; issue 37's A/B, docs/AB.md) is the authors' code's: the
+node encoder sees the velocity alone (``[] | [v (3)]``), the static node features go to the
+decoder beside the latent instead (``EncodeProcessDecode``'s ``decoder_static``), and the edge
+features hold the relative position itself, ``[l0, x0_j - x0_i] | [l, x_j - x_i]``.
+
 Normalisers hold per-feature mean and std computed from training trajectories only, as
 buffers, so they travel with the model's ``state_dict``.
 """
@@ -33,6 +38,18 @@ from meshodenet.network import RodAngles
 NODE_STATIC = {"line": 1, "triangle": 1 + N_NODE_TYPES}
 NODE_DYNAMIC = {"line": 8, "triangle": 6}
 EDGE_STATIC, EDGE_DYNAMIC = 4, 4
+#: Feature layouts (module docstring): ours, or the authors' code's.
+LAYOUTS = ("ours", "authors")
+
+
+def check_layout(owner: str, value) -> None:
+    if value not in LAYOUTS:
+        raise ValueError(f"{owner}.layout must be one of {', '.join(LAYOUTS)}; got {value!r}")
+
+
+def n_dynamic(kind: str, layout: str = "ours") -> int:
+    """Dynamic node features: ``NODE_DYNAMIC[kind]``, or the velocity alone (``authors``)."""
+    return 3 if layout == "authors" else NODE_DYNAMIC[kind]
 
 
 def n_static(kind: str, rest_position: bool = False) -> int:
@@ -40,8 +57,8 @@ def n_static(kind: str, rest_position: bool = False) -> int:
     return NODE_STATIC[kind] + 3 * bool(rest_position)
 
 
-def n_node_features(kind: str, rest_position: bool = False) -> int:
-    return n_static(kind, rest_position) + NODE_DYNAMIC[kind]
+def n_node_features(kind: str, rest_position: bool = False, layout: str = "ours") -> int:
+    return n_static(kind, rest_position) + n_dynamic(kind, layout)
 
 
 def _length_direction(vec: torch.Tensor) -> torch.Tensor:
@@ -68,6 +85,21 @@ def check_youngs_feature(owner: str, value) -> None:
                          f"{', '.join(YOUNGS_FEATURES)}; got {value!r}")
 
 
+#: How the decoder's output is de-normalised into an acceleration: ``acceleration`` with the
+#: mean and std of the training accelerations (finite differences of the stored velocities over
+#: free nodes); ``velocity`` as the authors' code does (issue 37's A/B): zero mean and the
+#: velocity's std per component in their ODE's time unit of 0.1 per frame, i.e.
+#: ``std(v) / (10 dt)`` with ``dt`` the mean sampling interval (on the plate 3.4x / 5.3x the
+#: acceleration's std in y / x: the network's output moves the acceleration that much more).
+ACC_SCALES = ("acceleration", "velocity")
+
+
+def check_acc_scale(owner: str, value) -> None:
+    if value not in ACC_SCALES:
+        raise ValueError(f"{owner}.acc_scale must be one of {', '.join(ACC_SCALES)}; "
+                         f"got {value!r}")
+
+
 def check_rest_position(owner: str, value) -> None:
     if not isinstance(value, bool):
         raise ValueError(f"{owner}.rest_position must be a bool, got {value!r}")
@@ -90,22 +122,33 @@ def static_node_features(batch: GraphBatch, youngs: torch.Tensor, kind: str,
 
 
 def dynamic_node_features(x: torch.Tensor, v: torch.Tensor, batch: GraphBatch,
-                          kind: str) -> torch.Tensor:
-    """``(M, NODE_DYNAMIC[kind])`` from positions and velocities ``(M, 3)``."""
+                          kind: str, layout: str = "ours") -> torch.Tensor:
+    """``(M, n_dynamic(kind, layout))`` from positions and velocities ``(M, 3)``."""
+    if layout == "authors":
+        return v
     f_ext = batch.force - batch.damping * v
     if kind == "line":
         return torch.cat([v, turning_angle(x, batch.hinges), f_ext], dim=-1)
     return torch.cat([v, f_ext], dim=-1)
 
 
-def static_edge_features(batch: GraphBatch) -> torch.Tensor:
-    """``(D, 4)``: rest length and unit direction of every directed edge."""
-    return _length_direction(batch.rest_vec)
+def _length_vector(vec: torch.Tensor) -> torch.Tensor:
+    """``[|vec|, vec]`` per row (the ``authors`` layout)."""
+    return torch.cat([vec.norm(dim=-1, keepdim=True), vec], dim=-1)
 
 
-def dynamic_edge_features(x: torch.Tensor, batch: GraphBatch) -> torch.Tensor:
-    """``(D, 4)``: current length and unit direction of ``x_receiver - x_sender``."""
-    return _length_direction(x[batch.receivers] - x[batch.senders])
+def static_edge_features(batch: GraphBatch, layout: str = "ours") -> torch.Tensor:
+    """``(D, 4)``: rest length and unit direction (``authors``: vector) of every directed
+    edge."""
+    return (_length_vector if layout == "authors" else _length_direction)(batch.rest_vec)
+
+
+def dynamic_edge_features(x: torch.Tensor, batch: GraphBatch, layout: str = "ours"
+                          ) -> torch.Tensor:
+    """``(D, 4)``: current length and unit direction (``authors``: vector) of
+    ``x_receiver - x_sender``."""
+    vec = x[batch.receivers] - x[batch.senders]
+    return (_length_vector if layout == "authors" else _length_direction)(vec)
 
 
 class Normalizer(nn.Module):
@@ -183,22 +226,32 @@ class _Moments:
 
 class FeatureStats(nn.Module):
     """Normalisers of node features, edge features and accelerations (targets of the
-    decoder, from finite differences of the stored velocities over free nodes).
+    decoder, from finite differences of the stored velocities over free nodes, or with
+    ``acc_scale="velocity"`` the authors' scale: ``ACC_SCALES``).
 
     Build it empty (``FeatureStats(kind)``) and either ``compute`` from training trajectories or
     load a ``state_dict``.
     """
 
-    def __init__(self, kind: str, youngs_feature: str = "linear", rest_position: bool = False):
+    def __init__(self, kind: str, youngs_feature: str = "linear", rest_position: bool = False,
+                 acc_scale: str = "acceleration", layout: str = "ours"):
         super().__init__()
         check_youngs_feature("FeatureStats", youngs_feature)
+        check_acc_scale("FeatureStats", acc_scale)
+        check_layout("FeatureStats", layout)
         self.kind = kind
+        self.acc_scale = acc_scale
+        self.layout = layout
         self.youngs_feature = youngs_feature
         self.rest_position = bool(rest_position)
         s = n_static(kind, rest_position)
-        node_vectors = ((s, s + 3), (s + 5, s + 8)) if kind == "line" else ((s, s + 3),
-                                                                            (s + 3, s + 6))
-        self.node = Normalizer(n_node_features(kind, rest_position), vectors=node_vectors)
+        if layout == "authors":
+            node_vectors = ((s, s + 3),)
+        elif kind == "line":
+            node_vectors = ((s, s + 3), (s + 5, s + 8))
+        else:
+            node_vectors = ((s, s + 3), (s + 3, s + 6))
+        self.node = Normalizer(n_node_features(kind, rest_position, layout), vectors=node_vectors)
         self.edge = Normalizer(EDGE_STATIC + EDGE_DYNAMIC, vectors=((1, 4), (5, 8)))
         self.acc = Normalizer(3, output=True, vectors=((0, 3),))
 
@@ -217,13 +270,21 @@ class FeatureStats(nn.Module):
             y = train.youngs[b].expand(T)
             node.add(torch.cat([static_node_features(batch, y, self.kind, self.youngs_feature,
                                                      self.rest_position),
-                                dynamic_node_features(x, v, batch, self.kind)], -1))
-            edge.add(torch.cat([static_edge_features(batch),
-                                dynamic_edge_features(x, batch)], -1))
+                                dynamic_node_features(x, v, batch, self.kind, self.layout)], -1))
+            edge.add(torch.cat([static_edge_features(batch, self.layout),
+                                dynamic_edge_features(x, batch, self.layout)], -1))
             a = (train.vel[b, 1:] - train.vel[b, :-1]) / dt
             acc.add(a[:, free])
-        for norm, mom in ((self.node, node), (self.edge, edge), (self.acc, acc)):
-            norm.set_stats(*mom.result())
+        node_mean, node_std = node.result()
+        if self.acc_scale == "velocity":  # ACC_SCALES: the raw std (0 for a planar case's z)
+            s = n_static(self.kind, self.rest_position)
+            acc_stats = (torch.zeros(3, dtype=torch.float64),
+                         node_std[s:s + 3] / (10 * float(dt.mean())))
+        else:
+            acc_stats = acc.result()
+        self.node.set_stats(node_mean, node_std)
+        self.edge.set_stats(*edge.result())
+        self.acc.set_stats(*acc_stats)
         return self
 
 
@@ -243,18 +304,25 @@ class GraphContext:
     edge_std: torch.Tensor
     acc_mean: torch.Tensor
     acc_std: torch.Tensor
+    layout: str = "ours"
 
     def inputs(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Normalised node and edge inputs of the GNN at positions ``x`` and velocities ``v``
-        ``(M, 3)``: static features followed by the dynamic ones."""
-        b = self.batch
-        node_in = torch.cat([self.node_static,
-                             (dynamic_node_features(x, v, b, self.kind) - self.node_mean)
-                             / self.node_std], dim=-1)
+        ``(M, 3)``: static features followed by the dynamic ones (the node inputs of the
+        ``authors`` layout: the dynamic ones only, ``decoder_static`` holds the static)."""
+        b, lay = self.batch, self.layout
+        node_dyn = (dynamic_node_features(x, v, b, self.kind, lay) - self.node_mean) / self.node_std
+        node_in = node_dyn if lay == "authors" else torch.cat([self.node_static, node_dyn], -1)
         edge_in = torch.cat([self.edge_static,
-                             (dynamic_edge_features(x, b) - self.edge_mean) / self.edge_std],
+                             (dynamic_edge_features(x, b, lay) - self.edge_mean) / self.edge_std],
                             dim=-1)
         return node_in, edge_in
+
+    @property
+    def decoder_static(self) -> torch.Tensor | None:
+        """The normalised static node features the decoder sees (``authors`` layout), or
+        ``None``."""
+        return self.node_static if self.layout == "authors" else None
 
 
 def graph_context(stats: FeatureStats, topology: GraphTopology, youngs: torch.Tensor,
@@ -270,6 +338,8 @@ def graph_context(stats: FeatureStats, topology: GraphTopology, youngs: torch.Te
     node_static = (static_node_features(batch, youngs.to(dtype), stats.kind,
                                         stats.youngs_feature, stats.rest_position)
                    - nm[:s]) / ns[:s]
-    edge_static = (static_edge_features(batch) - em[:EDGE_STATIC]) / es[:EDGE_STATIC]
+    edge_static = (static_edge_features(batch, stats.layout) - em[:EDGE_STATIC]) \
+        / es[:EDGE_STATIC]
     return cls(batch, stats.kind, node_static, edge_static, nm[s:], ns[s:], em[EDGE_STATIC:],
-               es[EDGE_STATIC:], cast(stats.acc.mean), cast(stats.acc.std), **extra)
+               es[EDGE_STATIC:], cast(stats.acc.mean), cast(stats.acc.std), stats.layout,
+               **extra)

@@ -97,17 +97,23 @@ class EncodeProcessDecode(nn.Module):
 
     def __init__(self, d_node: int, d_edge: int, d_out: int, hidden: int = 128,
                  n_layers: int = 1, mlp_hidden_layers: int = 2, activation: str = "relu",
-                 layer_norm: bool = False, message_passing: str = "pyg"):
+                 layer_norm: bool = False, message_passing: str = "pyg",
+                 d_decoder_static: int = 0):
         super().__init__()
         args = (mlp_hidden_layers, activation, layer_norm)
         self.node_encoder = mlp(d_node, hidden, hidden, *args)
         self.edge_encoder = mlp(d_edge, hidden, hidden, *args)
         self.processor = nn.ModuleList(InteractionLayer(hidden, *args, message_passing)
                                        for _ in range(n_layers))
-        self.decoder = mlp(hidden, hidden, d_out, mlp_hidden_layers, activation, False)
+        #: ``d_decoder_static`` > 0: the decoder sees ``[h, decoder_static]`` (the authors'
+        #: layout, ``meshodenet.features``)
+        self.decoder = mlp(hidden + d_decoder_static, hidden, d_out, mlp_hidden_layers,
+                           activation, False)
 
-    def forward(self, node_in, edge_in, senders, receivers):
+    def forward(self, node_in, edge_in, senders, receivers, decoder_static=None):
         h, e = self.node_encoder(node_in), self.edge_encoder(edge_in)
         for layer in self.processor:
             h, e = layer(h, e, senders, receivers)
+        if decoder_static is not None:
+            h = torch.cat([h, decoder_static], dim=-1)
         return self.decoder(h)

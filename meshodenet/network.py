@@ -123,10 +123,18 @@ class Features:
         self.angles = RodAngles(b.hinges, b.n_nodes, dtype, dev) if ctx.kind == "line" else None
         self.node_mean, self.node_std = ctx.node_mean, ctx.node_std
         self.edge_mean, self.edge_std = ctx.edge_mean, ctx.edge_std
+        self.authors = ctx.layout == "authors"
 
     def forward(self, x, v, tape=None):
         """``(node (M, n_dyn), edge (D, 4))``; when ``tape`` (a list) is given, what
         ``backward`` needs is appended to it."""
+        if self.authors:  # [v] and [l, vec]
+            vec = x.index_select(0, self.receivers) - x.index_select(0, self.senders)
+            length = vec.norm(dim=-1, keepdim=True)
+            if tape is not None:
+                tape += [length, vec]
+            Fe = torch.cat([length, vec], 1)
+            return (v - self.node_mean) / self.node_std, (Fe - self.edge_mean) / self.edge_std
         if self.fused_load:
             fext = torch.addcmul(self.force, self.damping, v, value=-1.0)
         else:
@@ -149,6 +157,14 @@ class Features:
         """Gradient w.r.t. ``x`` from those of the normalised features ``g_F, g_Fe``; adds the
         velocity part into ``g_v`` (pops ``tape``)."""
         g_F, g_Fe = g_F / self.node_std, g_Fe / self.edge_std
+        if self.authors:
+            vec, length = tape.pop(), tape.pop()
+            # d|vec|/dvec = vec / |vec| (0 for an edge of zero length, autograd's choice)
+            g_vec = torch.addcdiv(g_Fe[:, 1:], g_Fe[:, :1] * vec, length.clamp_min(1e-30))
+            g_x = torch.zeros_like(g_v)
+            g_x.index_add_(0, self.receivers, g_vec).index_add_(0, self.senders, -g_vec)
+            g_v.add_(g_F)
+            return g_x
         Fe, lc = tape.pop(), tape.pop()
         d = Fe[:, 1:]
         g_d = g_Fe[:, 1:]
@@ -212,23 +228,34 @@ class Network:
             maps.append((src(lin.bias), lambda G, b=b: G[b]))
             return w, b
 
+        def folded(lin, static, first: bool):
+            """A first layer on ``[static | dynamic]`` (``first``) or ``[dynamic | static]``:
+            ``W_d f + c``, ``c = W_s static + b`` (a per-row bias)."""
+            n = static.shape[1]
+            W, bias = D(lin.weight), D(lin.bias)
+            Wd, Ws = (W[:, n:], W[:, :n]) if first else (W[:, :W.shape[1] - n], W[:, W.shape[1] - n:])
+            w, c = add(Wd.t()), add(torch.addmm(bias, static, Ws.t()))
+            if first:
+                maps.append((src(lin.weight), lambda G: torch.cat([G[c].t() @ static, G[w].t()], 1)))
+            else:
+                maps.append((src(lin.weight), lambda G: torch.cat([G[w].t(), G[c].t() @ static], 1)))
+            maps.append((src(lin.bias), lambda G: G[c].sum(0)))
+            return w, c
+
         def encoder(seq, static):
             """First layer on ``[static | dynamic]``: ``W_d f + c``, ``c = W_s static + b``."""
             lins = _linears(seq)
-            n = static.shape[1]
-            W, bias = D(lins[0].weight), D(lins[0].bias)
-            w, c = add(W[:, n:].t()), add(torch.addmm(bias, static, W[:, :n].t()))
-            maps.append((src(lins[0].weight),
-                         lambda G: torch.cat([G[c].t() @ static, G[w].t()], 1)))
-            maps.append((src(lins[0].bias), lambda G: G[c].sum(0)))
-            return [(w, c)] + [plain(lin) for lin in lins[1:]]
+            return [folded(lins[0], static, True)] + [plain(lin) for lin in lins[1:]]
 
-        def decoder(seq):
-            """Last layer followed by the de-normalisation ``y s + m`` (with ``output``)."""
+        def decoder(seq, static=None):
+            """Last layer followed by the de-normalisation ``y s + m`` (with ``output``); with
+            ``static`` (the authors' layout) the first layer on ``[h | static]`` folded."""
             lins = _linears(seq)
+            first = [] if static is None else [folded(lins[0], static, False)]
+            lins = lins[len(first):]
             if output is None:
-                return [plain(lin) for lin in lins]
-            out = [plain(lin) for lin in lins[:-1]]
+                return first + [plain(lin) for lin in lins]
+            out = first + [plain(lin) for lin in lins[:-1]]
             s_, m_ = output
             W, bias = D(lins[-1].weight), D(lins[-1].bias)
             w, b = add((W * s_[:, None]).t()), add(bias * s_ + m_)
@@ -236,8 +263,10 @@ class Network:
             maps.append((src(lins[-1].bias), lambda G: G[b] * s_))
             return out + [(w, b)]
 
+        dec_static = getattr(ctx, "decoder_static", None)
+        enc_static = ctx.node_static if dec_static is None else ctx.node_static[:, :0]
         with torch.no_grad() if detach else contextlib.nullcontext():
-            self.node_enc = encoder(gnn.node_encoder, ctx.node_static)
+            self.node_enc = encoder(gnn.node_encoder, enc_static)
             self.edge_enc = encoder(gnn.edge_encoder, ctx.edge_static)
             self.layers = []
             for layer in gnn.processor:
@@ -257,7 +286,7 @@ class Network:
                 rest_e = [plain(m) for m in el[1:]]
                 rest_n = [plain(m) for m in nl[1:]]
                 self.layers.append(((we, wsr, bsr), rest_e, (wh, wa, bn), rest_n, d))
-            self.decoder = decoder(gnn.decoder)
+            self.decoder = decoder(gnn.decoder, dec_static)
             self.params = P
         self._maps = maps
 

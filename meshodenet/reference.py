@@ -18,7 +18,7 @@ def vector_field(model, z: torch.Tensor, ctx) -> torch.Tensor:
     b = ctx.batch
     x, v = z[0], z[1] * b.free
     node_in, edge_in = ctx.inputs(x, v)
-    a = model.gnn(node_in, edge_in, b.senders, b.receivers)
+    a = model.gnn(node_in, edge_in, b.senders, b.receivers, ctx.decoder_static)
     a = (a * ctx.acc_std + ctx.acc_mean) * b.free
     return torch.stack([v, a])
 

@@ -132,6 +132,17 @@ def test_merge_table_and_figure(tiny_case, tmp_path):
     assert list(df.columns) == list(core.COLUMNS)
     assert sorted(set(df["code"])) == ["authors", "ours", "standing_still"]
     assert (res / "figures" / "tiny_ab.png").stat().st_size > 0
+    # a bisection step: ours with --set settings, labelled by them; the same one twice refused
+    assert _train(tiny_case, tmp_path / "v", "ours", 1, "--set", "model.loss=rms") == 0
+    argv = ["merge", "--case", case.id, "--authors", str(auth), "--ours", str(tmp_path / "ours"),
+            "--results", str(res), "--name", "tiny", "--variant", str(tmp_path / "v")]
+    assert main(argv) == 0
+    df = pd.read_csv(res / "tiny_ab.csv")
+    assert sorted(set(df["code"])) == ["authors", "ours", "ours+loss=rms", "standing_still"]
+    v = df[df["code"] == "ours+loss=rms"]
+    assert list(v["epoch"]) == [0, 1] and v["test_loss"].notna().all()
+    assert not np.allclose(v["train_loss"].iloc[1], df[df["code"] == "ours"]["train_loss"].iloc[1])
+    assert main(argv + ["--variant", str(tmp_path / "v")]) == 2
 
 
 def test_published_log_excerpt():

@@ -29,10 +29,13 @@ from meshodenet.features import (
     EDGE_STATIC,
     FeatureStats,
     GraphContext,
+    check_acc_scale,
+    check_layout,
     check_rest_position,
     check_youngs_feature,
     graph_context,
     n_node_features,
+    n_static,
 )
 from meshodenet.graph import GraphTopology
 from meshodenet.integrators import GRADIENT_MODES, INTEGRATORS
@@ -63,6 +66,10 @@ def release_count(fraction: float, n: int, generator=None) -> int:
     return k
 
 
+#: Training losses (``MeshODENetConfig.loss``).
+LOSSES = ("mse", "rms")
+
+
 @dataclass(frozen=True)
 class MeshODENetConfig:
     """Architecture, integrator, gradient mode and training windows of MeshODENet.
@@ -90,6 +97,13 @@ class MeshODENetConfig:
       no-motion loss at that frame; 0 weighs all frames the same (``training_loss``).
     - ``release_weight`` ``lambda >= 0``: adds ``lambda`` times the error of one step from
       frame 0, relative to standing still (``_release_loss``).
+    - ``acc_scale``: how the decoder's output becomes an acceleration
+      (``meshodenet.features.ACC_SCALES``: ``acceleration``, or ``velocity`` as the authors'
+      code); ``loss``: ``mse`` (``training_loss``) or ``rms``, the mean over windows of the
+      root of each window's mean square error relative to standing still (the authors' loss,
+      up to a constant, is its value for one whole trajectory); ``layout``: the features'
+      (``meshodenet.features.LAYOUTS``: ``ours``, or ``authors``, the authors' code's). Issue
+      37's A/B: docs/AB.md.
     - ``engine``, ``message_passing``: how the network is evaluated
       (``meshodenet.models.common.ENGINES``, ``MESSAGE_PASSING``); not the model itself.
 
@@ -114,6 +128,9 @@ class MeshODENetConfig:
     release_fraction: float = 0.0
     frame_weight: float = 0.0
     release_weight: float = 0.0
+    acc_scale: str = "acceleration"
+    loss: str = "mse"
+    layout: str = "ours"
     engine: str = "fast"
     message_passing: str = "pyg"
 
@@ -124,10 +141,20 @@ class MeshODENetConfig:
         check_nonnegative("MeshODENetConfig", "release_weight", self.release_weight)
         check_rest_position("MeshODENetConfig", self.rest_position)
         check_youngs_feature("MeshODENetConfig", self.youngs_feature)
+        check_acc_scale("MeshODENetConfig", self.acc_scale)
+        check_layout("MeshODENetConfig", self.layout)
+        check_choice(self, "loss", LOSSES)
+        if self.loss == "rms" and self.frame_weight:
+            raise ValueError(f"MeshODENetConfig.frame_weight={self.frame_weight!r} has no "
+                             "meaning with loss='rms'; leave it 0 or choose loss='mse'")
         for name, lo in (("hidden", 1), ("layers", 0), ("mlp_hidden_layers", 0),
                          ("substeps", 1), ("checkpoint_every", 1), ("shooting", 0),
                          ("shooting_epochs", 0)):
             check_int(self, name, lo)
+        if self.layout == "authors" and self.mlp_hidden_layers < 1:
+            raise ValueError("MeshODENetConfig.mlp_hidden_layers must be >= 1 with "
+                             "layout='authors' (the decoder's first and last layers apart), got "
+                             f"{self.mlp_hidden_layers!r}")
         check_choice(self, "activation", ACTIVATIONS)
         check_choice(self, "integrator", INTEGRATORS)
         check_choice(self, "grad_mode", GRADIENT_MODES)
@@ -202,15 +229,20 @@ class MeshODENet(TrajectoryModel):
         super().__init__(mesh, config)
         self.topology = GraphTopology(mesh, hinges)
         self.kind = mesh.kind
-        self.stats = FeatureStats(self.kind, config.youngs_feature, config.rest_position)
+        self.stats = FeatureStats(self.kind, config.youngs_feature, config.rest_position,
+                                  config.acc_scale, config.layout)
         self.epoch = 0
         self._loss_scales: dict = {}  # no-motion losses (_frame_scales, _release_loss)
         if train is not None:
             self.stats.compute(self.topology, train)
+        n_node, n_dec = n_node_features(self.kind, config.rest_position, config.layout), 0
+        if config.layout == "authors":  # the static node features go to the decoder
+            n_dec = n_static(self.kind, config.rest_position)
+            n_node -= n_dec
         self.gnn = EncodeProcessDecode(
-            n_node_features(self.kind, config.rest_position), EDGE_STATIC + EDGE_DYNAMIC, 3, config.hidden,
-            config.layers, config.mlp_hidden_layers, config.activation, layer_norm=False,
-            message_passing=config.message_passing)
+            n_node, EDGE_STATIC + EDGE_DYNAMIC, 3, config.hidden, config.layers,
+            config.mlp_hidden_layers, config.activation, layer_norm=False,
+            message_passing=config.message_passing, d_decoder_static=n_dec)
         self.nfe = 0
 
     @property
@@ -312,6 +344,9 @@ class MeshODENet(TrajectoryModel):
         square error times ``s_d^-p`` (``_frame_scales``), divided by the mean of
         ``s_d^(1-p)``, its value for standing still.
 
+        With ``loss="rms"``: the mean over windows of the root of each window's mean square
+        error relative to standing still (``frame_weight`` 0).
+
         This is the paper's loss (its eq. for ``L(theta)``: squared position error summed over
         nodes, averaged over samples and frames) divided by a constant, so that standing still
         scores 1 whatever the case's units or the shooting horizon, and the size of the
@@ -340,7 +375,9 @@ class MeshODENet(TrajectoryModel):
                                data.youngs[traj], t)  # (n, S+1, N, 3)
         sq = ((pred[:, 1:] - data.pos[traj[:, None], frames[:, 1:]]) ** 2).sum(-1)
         p = self.config.frame_weight
-        if not p:
+        if getattr(self.config, "loss", "mse") == "rms":  # (ImexConfig has none)
+            loss = (sq.mean(dim=(1, 2)) / self._loss_scale(data, S)).sqrt().mean()
+        elif not p:
             loss = sq.mean() / self._loss_scale(data, S)
         else:
             s_d = self._frame_scales(data, S).clamp_min(1e-30)  # a frame that never moves

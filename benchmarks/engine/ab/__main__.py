@@ -44,6 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="read their whole published log from this checkout (a CSV; no code runs)")
     m.add_argument("--name", default=None, help="file stem (default plate / rod / the case id)")
     m.add_argument("--allow-smoke", action="store_true", help="merge runs on part of the data")
+    m.add_argument("--variant", action="append", type=Path, default=[], metavar="DIR",
+                   help="another --code ours run directory, trained with --set settings "
+                        "(a bisection step; its code reads ours+F=V); repeatable")
     m.set_defaults(func=_merge)
     return p
 
@@ -87,7 +90,7 @@ def _merge(args) -> int:
     from benchmarks.engine.ab.merge import merge
 
     path = merge(args.case, args.authors, args.ours, args.results, args.authors_repo,
-                 args.allow_smoke, args.name)
+                 args.allow_smoke, args.name, args.variant)
     print(f"wrote {path} and {path.parent / 'figures' / (path.stem + '.png')}")
     return 0
 

@@ -74,21 +74,38 @@ def published_rows(case: str, repo=None) -> list:
     return rows
 
 
+def variant_code(cfg: dict) -> str:
+    """The ``code`` of a ``--code ours`` run in the merged table: ``ours`` for the ``paper``
+    preset as it is, ``ours+F=V+...`` for one trained with ``--set`` settings (a bisection
+    step: ``model.acc_scale=velocity`` reads ``ours+acc_scale=velocity``)."""
+    sets = [o.split(".", 1)[-1] for o in (cfg.get("extra") or {}).get("overrides") or []]
+    return "+".join(["ours", *sets])
+
+
 def merge(case: str, authors_dir, ours_dir, results="results/paper", repo=None,
-          allow_smoke: bool = False, name: str | None = None) -> Path:
-    """Write ``RESULTS/NAME_ab.csv`` and ``RESULTS/figures/NAME_ab.png``; returns the CSV."""
+          allow_smoke: bool = False, name: str | None = None, variants=()) -> Path:
+    """Write ``RESULTS/NAME_ab.csv`` and ``RESULTS/figures/NAME_ab.png``; returns the CSV.
+    ``variants``: more ``--code ours`` run directories (``--set`` settings: ``variant_code``)."""
     from meshodenet.train import write_rows
 
     a_rows, a_cfg = read_run(authors_dir, "authors", case, allow_smoke)
-    o_rows, o_cfg = read_run(ours_dir, "ours", case, allow_smoke)
-    if a_cfg.get("data") != o_cfg.get("data"):
-        raise core.ABError(f"the runs were fed different data: {a_cfg.get('data')} "
-                           f"({authors_dir}) and {o_cfg.get('data')} ({ours_dir})")
-    still = [r for r in a_rows + o_rows if r["code"] == "standing_still"]
+    runs = [(ours_dir, *read_run(ours_dir, "ours", case, allow_smoke))]
+    runs += [(d, *read_run(d, "ours", case, allow_smoke)) for d in variants]
+    rows, codes = [r for r in a_rows if r["code"] == "authors"], {}
+    still = [r for r in a_rows if r["code"] == "standing_still"]
+    for d, o_rows, o_cfg in runs:
+        if a_cfg.get("data") != o_cfg.get("data"):
+            raise core.ABError(f"the runs were fed different data: {a_cfg.get('data')} "
+                               f"({authors_dir}) and {o_cfg.get('data')} ({d})")
+        code = variant_code(o_cfg)
+        if code in codes:
+            raise core.ABError(f"{d} and {codes[code]} are both {code!r}: merge one of them")
+        codes[code] = d
+        rows += [{**r, "code": code} for r in o_rows if r["code"] == "ours"]
+        still += [r for r in o_rows if r["code"] == "standing_still"]
     if still and any(not math.isclose(r["test_loss"], still[0]["test_loss"], rel_tol=1e-5)
                      for r in still):
         raise core.ABError("the runs' standing-still test losses differ: not the same test split")
-    rows = [r for r in a_rows if r["code"] == "authors"] + [r for r in o_rows if r["code"] == "ours"]
     rows += still[:1] + published_rows(case, repo)
     rows.sort(key=lambda r: (r["code"], r["epoch"]))
     results = Path(results)
@@ -107,7 +124,11 @@ def figure(rows: list, path: Path, case: str, data: dict) -> None:
     import matplotlib.pyplot as plt
 
     fig, (ax_l, ax_r) = plt.subplots(1, 2, figsize=(11, 4.2))
-    for code, (label, color, style) in CURVES.items():
+    curves = dict(CURVES)
+    more = sorted({r["code"] for r in rows} - set(CURVES) - {"standing_still"})
+    for i, code in enumerate(more):  # bisection runs: ours with --set settings
+        curves[code] = (code, f"C{(4 + i) % 10}", "-")
+    for code, (label, color, style) in curves.items():
         sel = sorted((r for r in rows if r["code"] == code), key=lambda r: r["epoch"])
         if not sel:
             continue
@@ -124,7 +145,8 @@ def figure(rows: list, path: Path, case: str, data: dict) -> None:
     ax_l.set(yscale="log", xlabel="epochs finished (0: untrained)",
              ylabel="test loss (authors' units), m",
              title=f"{case}: test loss")
-    last = max((r["epoch"] for r in rows if r["code"] in ("authors", "ours")), default=0)
+    last = max((r["epoch"] for r in rows if r["code"] not in ("authors_published",
+                                                                "standing_still")), default=0)
     if last:  # the published log runs 600 epochs: show the A/B's range
         ax_l.set_xlim(-0.5, last + 0.5)
     ax_r.set(yscale="log", xlabel="epochs finished (0: untrained)",

@@ -13,8 +13,13 @@ recomputes from ``last.pt`` before training on (its CPU seconds are then unknown
 Training loss in the authors' units: ``fit`` minimises the mean square error over frames
 ``k >= 1`` and nodes divided by that of standing still on the training split (``s``); for a
 whole trajectory of ``T`` frames and ``N`` nodes the authors' loss is
-``sqrt(loss * s * N (T - 1) / (3 T))`` (frame 0's error is zero). Each step's value is recorded
-(exact for one trajectory per step, the ``paper`` preset) and the row holds their mean.
+``sqrt(loss * s * N (T - 1) / (3 T))`` (frame 0's error is zero); with ``--set model.loss=rms``
+(the root of that ratio) the same with ``loss**2``. Each step's value is recorded (exact for one
+trajectory per step, the ``paper`` preset) and the row holds their mean.
+
+``--set`` also runs the bisection steps of docs/AB.md ("What differs"): ``model.acc_scale``,
+``model.loss`` and ``model.layout`` switch our model to the authors' code's conventions one by
+one.
 """
 
 from __future__ import annotations
@@ -59,6 +64,8 @@ def authors_units(model, data, loss: float) -> float:
     """A whole-trajectory training loss of ``fit`` in the authors' units (module docstring)."""
     T, N = data.n_frames, data.pos.shape[2]
     scale = model._loss_scale(data, model.horizon(T - 1))
+    if model.config.loss == "rms":  # one whole trajectory per step: the root of the mse one
+        loss = loss * loss
     return math.sqrt(loss * scale * N * (T - 1) / (3 * T))
 
 
