@@ -18,7 +18,8 @@ length and unit direction of ``x_j - x_i``.
 ``layout = "authors"`` (``LAYOUTS``; issue 37's A/B, docs/AB.md) is the authors' code's: the
 node encoder sees the velocity alone (``[] | [v (3)]``), the static node features go to the
 decoder beside the latent instead (``EncodeProcessDecode``'s ``decoder_static``), and the edge
-features hold the relative position itself, ``[l0, x0_j - x0_i] | [l, x_j - x_i]``.
+features hold the relative position itself, ``[l0, x0_j - x0_i] | [l, x_j - x_i]``;
+``authors_nodes`` and ``authors_edges`` take one of the two parts (the A/B's bisection).
 
 Normalisers hold per-feature mean and std computed from training trajectories only, as
 buffers, so they travel with the model's ``state_dict``.
@@ -39,7 +40,17 @@ NODE_STATIC = {"line": 1, "triangle": 1 + N_NODE_TYPES}
 NODE_DYNAMIC = {"line": 8, "triangle": 6}
 EDGE_STATIC, EDGE_DYNAMIC = 4, 4
 #: Feature layouts (module docstring): ours, or the authors' code's.
-LAYOUTS = ("ours", "authors")
+LAYOUTS = ("ours", "authors", "authors_nodes", "authors_edges")
+
+
+def authors_nodes(layout: str) -> bool:
+    """The node part of the authors' layout: velocity-only encoder, static at the decoder."""
+    return layout in ("authors", "authors_nodes")
+
+
+def authors_edges(layout: str) -> bool:
+    """The edge part of the authors' layout: relative positions instead of directions."""
+    return layout in ("authors", "authors_edges")
 
 
 def check_layout(owner: str, value) -> None:
@@ -49,7 +60,7 @@ def check_layout(owner: str, value) -> None:
 
 def n_dynamic(kind: str, layout: str = "ours") -> int:
     """Dynamic node features: ``NODE_DYNAMIC[kind]``, or the velocity alone (``authors``)."""
-    return 3 if layout == "authors" else NODE_DYNAMIC[kind]
+    return 3 if authors_nodes(layout) else NODE_DYNAMIC[kind]
 
 
 def n_static(kind: str, rest_position: bool = False) -> int:
@@ -124,7 +135,7 @@ def static_node_features(batch: GraphBatch, youngs: torch.Tensor, kind: str,
 def dynamic_node_features(x: torch.Tensor, v: torch.Tensor, batch: GraphBatch,
                           kind: str, layout: str = "ours") -> torch.Tensor:
     """``(M, n_dynamic(kind, layout))`` from positions and velocities ``(M, 3)``."""
-    if layout == "authors":
+    if authors_nodes(layout):
         return v
     f_ext = batch.force - batch.damping * v
     if kind == "line":
@@ -140,7 +151,7 @@ def _length_vector(vec: torch.Tensor) -> torch.Tensor:
 def static_edge_features(batch: GraphBatch, layout: str = "ours") -> torch.Tensor:
     """``(D, 4)``: rest length and unit direction (``authors``: vector) of every directed
     edge."""
-    return (_length_vector if layout == "authors" else _length_direction)(batch.rest_vec)
+    return (_length_vector if authors_edges(layout) else _length_direction)(batch.rest_vec)
 
 
 def dynamic_edge_features(x: torch.Tensor, batch: GraphBatch, layout: str = "ours"
@@ -148,7 +159,7 @@ def dynamic_edge_features(x: torch.Tensor, batch: GraphBatch, layout: str = "our
     """``(D, 4)``: current length and unit direction (``authors``: vector) of
     ``x_receiver - x_sender``."""
     vec = x[batch.receivers] - x[batch.senders]
-    return (_length_vector if layout == "authors" else _length_direction)(vec)
+    return (_length_vector if authors_edges(layout) else _length_direction)(vec)
 
 
 class Normalizer(nn.Module):
@@ -245,7 +256,7 @@ class FeatureStats(nn.Module):
         self.youngs_feature = youngs_feature
         self.rest_position = bool(rest_position)
         s = n_static(kind, rest_position)
-        if layout == "authors":
+        if authors_nodes(layout):
             node_vectors = ((s, s + 3),)
         elif kind == "line":
             node_vectors = ((s, s + 3), (s + 5, s + 8))
@@ -309,10 +320,10 @@ class GraphContext:
     def inputs(self, x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Normalised node and edge inputs of the GNN at positions ``x`` and velocities ``v``
         ``(M, 3)``: static features followed by the dynamic ones (the node inputs of the
-        ``authors`` layout: the dynamic ones only, ``decoder_static`` holds the static)."""
+        authors' layout: the dynamic ones only, ``decoder_static`` holds the static)."""
         b, lay = self.batch, self.layout
         node_dyn = (dynamic_node_features(x, v, b, self.kind, lay) - self.node_mean) / self.node_std
-        node_in = node_dyn if lay == "authors" else torch.cat([self.node_static, node_dyn], -1)
+        node_in = node_dyn if authors_nodes(lay) else torch.cat([self.node_static, node_dyn], -1)
         edge_in = torch.cat([self.edge_static,
                              (dynamic_edge_features(x, b, lay) - self.edge_mean) / self.edge_std],
                             dim=-1)
@@ -322,7 +333,7 @@ class GraphContext:
     def decoder_static(self) -> torch.Tensor | None:
         """The normalised static node features the decoder sees (``authors`` layout), or
         ``None``."""
-        return self.node_static if self.layout == "authors" else None
+        return self.node_static if authors_nodes(self.layout) else None
 
 
 def graph_context(stats: FeatureStats, topology: GraphTopology, youngs: torch.Tensor,

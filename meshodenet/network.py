@@ -123,30 +123,29 @@ class Features:
         self.angles = RodAngles(b.hinges, b.n_nodes, dtype, dev) if ctx.kind == "line" else None
         self.node_mean, self.node_std = ctx.node_mean, ctx.node_std
         self.edge_mean, self.edge_std = ctx.edge_mean, ctx.edge_std
-        self.authors = ctx.layout == "authors"
+        from meshodenet.features import authors_edges, authors_nodes
+
+        self.authors_nodes = authors_nodes(ctx.layout)
+        self.authors_edges = authors_edges(ctx.layout)
 
     def forward(self, x, v, tape=None):
         """``(node (M, n_dyn), edge (D, 4))``; when ``tape`` (a list) is given, what
         ``backward`` needs is appended to it."""
-        if self.authors:  # [v] and [l, vec]
-            vec = x.index_select(0, self.receivers) - x.index_select(0, self.senders)
-            length = vec.norm(dim=-1, keepdim=True)
-            if tape is not None:
-                tape += [length, vec]
-            Fe = torch.cat([length, vec], 1)
-            return (v - self.node_mean) / self.node_std, (Fe - self.edge_mean) / self.edge_std
-        if self.fused_load:
-            fext = torch.addcmul(self.force, self.damping, v, value=-1.0)
+        if self.authors_nodes:  # [v]
+            F = v
         else:
-            fext = self.force - self.damping * v
-        if self.angles is None:
-            F = torch.cat([v, fext], 1)
-        else:
-            F = torch.cat([v, self.angles.forward(x, tape), fext], 1)
+            if self.fused_load:
+                fext = torch.addcmul(self.force, self.damping, v, value=-1.0)
+            else:
+                fext = self.force - self.damping * v
+            if self.angles is None:
+                F = torch.cat([v, fext], 1)
+            else:
+                F = torch.cat([v, self.angles.forward(x, tape), fext], 1)
         vec = x.index_select(0, self.receivers) - x.index_select(0, self.senders)
         length = vec.norm(dim=-1, keepdim=True)
         lc = length.clamp_min(1e-30)
-        Fe = torch.cat([length, vec / lc], 1)
+        Fe = torch.cat([length, vec if self.authors_edges else vec / lc], 1)
         if tape is not None:
             tape += [lc, Fe]
         # normalised as in GraphContext.inputs (the means are not folded into the weights:
@@ -157,22 +156,20 @@ class Features:
         """Gradient w.r.t. ``x`` from those of the normalised features ``g_F, g_Fe``; adds the
         velocity part into ``g_v`` (pops ``tape``)."""
         g_F, g_Fe = g_F / self.node_std, g_Fe / self.edge_std
-        if self.authors:
-            vec, length = tape.pop(), tape.pop()
-            # d|vec|/dvec = vec / |vec| (0 for an edge of zero length, autograd's choice)
-            g_vec = torch.addcdiv(g_Fe[:, 1:], g_Fe[:, :1] * vec, length.clamp_min(1e-30))
-            g_x = torch.zeros_like(g_v)
-            g_x.index_add_(0, self.receivers, g_vec).index_add_(0, self.senders, -g_vec)
-            g_v.add_(g_F)
-            return g_x
         Fe, lc = tape.pop(), tape.pop()
-        d = Fe[:, 1:]
         g_d = g_Fe[:, 1:]
-        # length = |vec|, d = vec / max(length, 1e-30). For an edge of zero length (vec = 0,
-        # so d = 0) this is autograd's subgradient too; only lengths in (0, 1e-30) differ.
-        g_vec = torch.addcdiv(g_Fe[:, :1] * d, g_d - (g_d * d).sum(-1, keepdim=True) * d, lc)
+        if self.authors_edges:  # [length, vec]: d|vec|/dvec = vec / |vec|
+            g_vec = torch.addcdiv(g_d, g_Fe[:, :1] * Fe[:, 1:], lc)
+        else:
+            d = Fe[:, 1:]
+            # length = |vec|, d = vec / max(length, 1e-30). For an edge of zero length (vec =
+            # 0, so d = 0) this is autograd's subgradient too; only lengths in (0, 1e-30) differ.
+            g_vec = torch.addcdiv(g_Fe[:, :1] * d, g_d - (g_d * d).sum(-1, keepdim=True) * d, lc)
         g_x = torch.zeros_like(g_v)
         g_x.index_add_(0, self.receivers, g_vec).index_add_(0, self.senders, -g_vec)
+        if self.authors_nodes:  # node features: [v]
+            g_v.add_(g_F)
+            return g_x
         # node features: [v, cs, fext] (line) or [v, fext]; fext = force - damping v
         g_v.add_(g_F[:, :3])
         g_v.addcmul_(self.damping, g_F[:, -3:], value=-1.0)

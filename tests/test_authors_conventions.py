@@ -98,6 +98,15 @@ def test_authors_layout_features():
     ours = MeshODENet(mesh, MeshODENetConfig(hidden=8), tr).double()
     assert ours.field_context(tr.youngs).decoder_static is None
     assert ours.gnn.node_encoder[0].in_features == n_static + 6
+    # the two halves (the A/B's bisection)
+    nodes = MeshODENet(mesh, MeshODENetConfig(hidden=8, layout="authors_nodes"), tr).double()
+    edges = MeshODENet(mesh, MeshODENetConfig(hidden=8, layout="authors_edges"), tr).double()
+    assert nodes.gnn.node_encoder[0].in_features == 3
+    assert edges.gnn.node_encoder[0].in_features == n_static + 6
+    assert edges.field_context(tr.youngs).decoder_static is None
+    torch.testing.assert_close(edges.field_context(tr.youngs).inputs(x, v)[1], edge_in)
+    n_edge = nodes.field_context(tr.youngs).inputs(x, v)[1]
+    torch.testing.assert_close(n_edge, ours.field_context(tr.youngs).inputs(x, v)[1])
 
 
 @pytest.mark.parametrize("fields, name", [

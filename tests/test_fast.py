@@ -109,11 +109,14 @@ CONFIGS = [
     MeshODENetConfig(hidden=16, layout="authors", acc_scale="velocity", loss="rms"),
     MeshODENetConfig(hidden=8, layers=2, mlp_hidden_layers=1, layout="authors",
                      rest_position=True),
+    MeshODENetConfig(hidden=8, layout="authors_nodes"),
+    MeshODENetConfig(hidden=8, layout="authors_edges", activation="silu"),
 ]
 
 
 @pytest.mark.parametrize("config", CONFIGS, ids=["relu", "silu-2layers", "tanh-0layers",
-                                                 "authors", "authors-2layers-rest"])
+                                                 "authors", "authors-2layers-rest",
+                                                 "authors-nodes", "authors-edges"])
 def test_field_and_gradients_tiny(arrays, config):
     fast, ref, data = pair(arrays, config)
     check_field(fast, ref, data, 2)

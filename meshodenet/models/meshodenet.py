@@ -29,6 +29,7 @@ from meshodenet.features import (
     EDGE_STATIC,
     FeatureStats,
     GraphContext,
+    authors_nodes,
     check_acc_scale,
     check_layout,
     check_rest_position,
@@ -151,7 +152,7 @@ class MeshODENetConfig:
                          ("substeps", 1), ("checkpoint_every", 1), ("shooting", 0),
                          ("shooting_epochs", 0)):
             check_int(self, name, lo)
-        if self.layout == "authors" and self.mlp_hidden_layers < 1:
+        if authors_nodes(self.layout) and self.mlp_hidden_layers < 1:
             raise ValueError("MeshODENetConfig.mlp_hidden_layers must be >= 1 with "
                              "layout='authors' (the decoder's first and last layers apart), got "
                              f"{self.mlp_hidden_layers!r}")
@@ -236,7 +237,7 @@ class MeshODENet(TrajectoryModel):
         if train is not None:
             self.stats.compute(self.topology, train)
         n_node, n_dec = n_node_features(self.kind, config.rest_position, config.layout), 0
-        if config.layout == "authors":  # the static node features go to the decoder
+        if authors_nodes(config.layout):  # the static node features go to the decoder
             n_dec = n_static(self.kind, config.rest_position)
             n_node -= n_dec
         self.gnn = EncodeProcessDecode(
