@@ -330,6 +330,16 @@ class GraphContext:
         return node_in, edge_in
 
     @property
+    def authors_nodes(self) -> bool:
+        """The node half of the authors' layout (``meshodenet.features.authors_nodes``)."""
+        return authors_nodes(self.layout)
+
+    @property
+    def authors_edges(self) -> bool:
+        """The edge half of the authors' layout (``meshodenet.features.authors_edges``)."""
+        return authors_edges(self.layout)
+
+    @property
     def decoder_static(self) -> torch.Tensor | None:
         """The normalised static node features the decoder sees (``authors`` layout), or
         ``None``."""

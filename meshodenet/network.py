@@ -123,10 +123,7 @@ class Features:
         self.angles = RodAngles(b.hinges, b.n_nodes, dtype, dev) if ctx.kind == "line" else None
         self.node_mean, self.node_std = ctx.node_mean, ctx.node_std
         self.edge_mean, self.edge_std = ctx.edge_mean, ctx.edge_std
-        from meshodenet.features import authors_edges, authors_nodes
-
-        self.authors_nodes = authors_nodes(ctx.layout)
-        self.authors_edges = authors_edges(ctx.layout)
+        self.authors_nodes, self.authors_edges = ctx.authors_nodes, ctx.authors_edges
 
     def forward(self, x, v, tape=None):
         """``(node (M, n_dyn), edge (D, 4))``; when ``tape`` (a list) is given, what
