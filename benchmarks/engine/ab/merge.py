@@ -126,8 +126,9 @@ def figure(rows: list, path: Path, case: str, data: dict) -> None:
     fig, (ax_l, ax_r) = plt.subplots(1, 2, figsize=(11, 4.2))
     curves = dict(CURVES)
     more = sorted({r["code"] for r in rows} - set(CURVES) - {"standing_still"})
+    free = [c for c in (f"C{i}" for i in range(10)) if c not in ("C0", "C3", "C7")]
     for i, code in enumerate(more):  # bisection runs: ours with --set settings
-        curves[code] = (code, f"C{(4 + i) % 10}", "-")
+        curves[code] = (code, free[i % len(free)], "-")
     for code, (label, color, style) in curves.items():
         sel = sorted((r for r in rows if r["code"] == code), key=lambda r: r["epoch"])
         if not sel:
