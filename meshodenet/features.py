@@ -284,8 +284,8 @@ class FeatureStats(nn.Module):
                                 dynamic_node_features(x, v, batch, self.kind, self.layout)], -1))
             edge.add(torch.cat([static_edge_features(batch, self.layout),
                                 dynamic_edge_features(x, batch, self.layout)], -1))
-            a = (train.vel[b, 1:] - train.vel[b, :-1]) / dt
-            acc.add(a[:, free])
+            if self.acc_scale == "acceleration":  # (``velocity``: from the node moments)
+                acc.add(((train.vel[b, 1:] - train.vel[b, :-1]) / dt)[:, free])
         node_mean, node_std = node.result()
         if self.acc_scale == "velocity":  # ACC_SCALES: the raw std (0 for a planar case's z)
             s = n_static(self.kind, self.rest_position)

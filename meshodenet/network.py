@@ -225,14 +225,16 @@ class Network:
         def folded(lin, static, first: bool):
             """A first layer on ``[static | dynamic]`` (``first``) or ``[dynamic | static]``:
             ``W_d f + c``, ``c = W_s static + b`` (a per-row bias)."""
-            n = static.shape[1]
             W, bias = D(lin.weight), D(lin.bias)
-            Wd, Ws = (W[:, n:], W[:, :n]) if first else (W[:, :W.shape[1] - n], W[:, W.shape[1] - n:])
+            k = static.shape[1] if first else W.shape[1] - static.shape[1]  # the split column
+            Wd, Ws = (W[:, k:], W[:, :k]) if first else (W[:, :k], W[:, k:])
             w, c = add(Wd.t()), add(torch.addmm(bias, static, Ws.t()))
-            if first:
-                maps.append((src(lin.weight), lambda G: torch.cat([G[c].t() @ static, G[w].t()], 1)))
-            else:
-                maps.append((src(lin.weight), lambda G: torch.cat([G[w].t(), G[c].t() @ static], 1)))
+
+            def weight_grad(G):
+                gs, gd = G[c].t() @ static, G[w].t()
+                return torch.cat([gs, gd] if first else [gd, gs], 1)
+
+            maps.append((src(lin.weight), weight_grad))
             maps.append((src(lin.bias), lambda G: G[c].sum(0)))
             return w, c
 
@@ -257,7 +259,7 @@ class Network:
             maps.append((src(lins[-1].bias), lambda G: G[b] * s_))
             return out + [(w, b)]
 
-        dec_static = getattr(ctx, "decoder_static", None)
+        dec_static = ctx.decoder_static
         enc_static = ctx.node_static if dec_static is None else ctx.node_static[:, :0]
         with torch.no_grad() if detach else contextlib.nullcontext():
             self.node_enc = encoder(gnn.node_encoder, enc_static)

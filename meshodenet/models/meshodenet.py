@@ -236,10 +236,9 @@ class MeshODENet(TrajectoryModel):
         self._loss_scales: dict = {}  # no-motion losses (_frame_scales, _release_loss)
         if train is not None:
             self.stats.compute(self.topology, train)
-        n_node, n_dec = n_node_features(self.kind, config.rest_position, config.layout), 0
-        if authors_nodes(config.layout):  # the static node features go to the decoder
-            n_dec = n_static(self.kind, config.rest_position)
-            n_node -= n_dec
+        # the authors' layout: the static node features go to the decoder
+        n_dec = n_static(self.kind, config.rest_position) if authors_nodes(config.layout) else 0
+        n_node = n_node_features(self.kind, config.rest_position, config.layout) - n_dec
         self.gnn = EncodeProcessDecode(
             n_node, EDGE_STATIC + EDGE_DYNAMIC, 3, config.hidden, config.layers,
             config.mlp_hidden_layers, config.activation, layer_norm=False,
