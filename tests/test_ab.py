@@ -134,15 +134,36 @@ def test_merge_table_and_figure(tiny_case, tmp_path):
     assert (res / "figures" / "tiny_ab.png").stat().st_size > 0
     # a bisection step: ours with --set settings, labelled by them; the same one twice refused
     assert _train(tiny_case, tmp_path / "v", "ours", 1, "--set", "model.loss=rms") == 0
+    # resumed with settings given another way that resolve to the same: the same run
+    assert _train(tiny_case, tmp_path / "v", "ours", 2, "--set", "model.engine=fast",
+                  "--set", "model.loss=rms") == 0
     argv = ["merge", "--case", case.id, "--authors", str(auth), "--ours", str(tmp_path / "ours"),
             "--results", str(res), "--name", "tiny", "--variant", str(tmp_path / "v")]
     assert main(argv) == 0
     df = pd.read_csv(res / "tiny_ab.csv")
     assert sorted(set(df["code"])) == ["authors", "ours", "ours+loss=rms", "standing_still"]
     v = df[df["code"] == "ours+loss=rms"]
-    assert list(v["epoch"]) == [0, 1] and v["test_loss"].notna().all()
+    assert list(v["epoch"]) == [0, 1, 2] and v["test_loss"].notna().all()
     assert not np.allclose(v["train_loss"].iloc[1], df[df["code"] == "ours"]["train_loss"].iloc[1])
     assert main(argv + ["--variant", str(tmp_path / "v")]) == 2
+
+
+def test_variant_code_reads_the_resolved_settings():
+    """Labels come from the stored model settings, not from the ``--set`` list: the plate's
+    ``paper`` preset (the authors' conventions) reads as the bisection run that set them."""
+    import dataclasses
+
+    from benchmarks.engine.ab.merge import AUTHORS_CONVENTIONS, variant_code
+    from meshodenet.models.meshodenet import meshodenet_presets
+
+    def cfg(kind, overrides=()):
+        model = dataclasses.asdict(meshodenet_presets("paper", kind)[1])
+        return {"extra": {"model": json.loads(json.dumps(model)), "overrides": list(overrides)}}
+
+    assert variant_code(cfg("line")) == "ours"
+    assert variant_code(cfg("triangle")) == AUTHORS_CONVENTIONS
+    assert variant_code(cfg("triangle", ["model.loss=rms", "train.lr=0.001"])) == (
+        AUTHORS_CONVENTIONS + "+lr=0.001")
 
 
 def test_published_log_excerpt():

@@ -116,3 +116,16 @@ def test_authors_layout_features():
 def test_bad_settings_name_the_field(fields, name):
     with pytest.raises(ValueError, match=f"MeshODENetConfig.{name}"):
         MeshODENetConfig(**fields)
+
+
+def test_paper_preset_takes_the_authors_conventions_on_triangles_only():
+    """Issue 37's A/B: the plate's ``paper`` preset is the authors' code's conventions; the
+    rod's keeps ours (its committed runs)."""
+    from meshodenet.models.meshodenet import meshodenet_presets
+
+    tri = meshodenet_presets("paper", "triangle")[1]
+    assert (tri.acc_scale, tri.loss, tri.layout) == ("velocity", "rms", "authors")
+    assert meshodenet_presets("paper", "line")[1] == MeshODENetConfig()
+    for kind in ("line", "triangle"):  # quick keeps our conventions
+        q = meshodenet_presets("quick", kind)[1]
+        assert (q.acc_scale, q.loss, q.layout) == ("acceleration", "mse", "ours")

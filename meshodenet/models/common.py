@@ -45,9 +45,11 @@ def paper_train_config(kind: str) -> TrainConfig:
                        **PAPER_SCHEDULES[kind])
 
 
-def preset_configs(preset: str, kind: str, quick: dict, config_cls, smoke: dict) -> tuple:
+def preset_configs(preset: str, kind: str, quick: dict, config_cls, smoke: dict,
+                   paper: dict | None = None) -> tuple:
     """``(TrainConfig, config)`` of the usual presets for a mesh of ``kind``: ``paper`` the
-    paper's optimiser with ``config_cls()``; ``quick`` ``quick[kind] = (TrainConfig fields,
+    paper's optimiser with ``config_cls(**paper.get(kind, {}))`` (``paper`` None: the config's
+    defaults on every kind); ``quick`` ``quick[kind] = (TrainConfig fields,
     config fields)`` over the paper's optimiser; ``smoke`` 2 epochs of 3 steps of 4 samples at
     lr 1e-3 with ``config_cls(**smoke)``, validated on a seeded random trajectory (the smoke
     runs check plumbing: on ``rod_cantilever``'s four trajectories the stratified split trains
@@ -55,7 +57,7 @@ def preset_configs(preset: str, kind: str, quick: dict, config_cls, smoke: dict)
     check_preset(preset)
     base = asdict(paper_train_config(kind))
     if preset == "paper":
-        return TrainConfig(**base), config_cls()
+        return TrainConfig(**base), config_cls(**(paper or {}).get(kind, {}))
     if preset == "quick":
         t, m = quick[kind]
         return TrainConfig(**{**base, **t}), config_cls(**m)

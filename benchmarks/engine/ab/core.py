@@ -171,8 +171,8 @@ class Setup:
 
 def check_resume(out: Path, setup: Setup, data: dict) -> None:
     """Write ``out/ab_config.json`` for a new run, or refuse (``ABError``) to continue a run
-    stored with another configuration (anything but ``epochs``) or other data (``data``:
-    what identifies it, e.g. the case hash)."""
+    stored with another configuration (anything but ``epochs`` and how the settings were given,
+    ``_settings``) or other data (``data``: what identifies it, e.g. the case hash)."""
     path = out / CONFIG_FILE
     new = {**setup.to_json(), "data": data}
     if path.exists():
@@ -180,7 +180,8 @@ def check_resume(out: Path, setup: Setup, data: dict) -> None:
             old = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise ABError(f"{path}: unreadable ({e}); choose another --out") from None
-        diff = sorted(k for k in set(old) | set(new) if k != "epochs" and old.get(k) != new.get(k))
+        a, b = _settings(old), _settings(new)
+        diff = sorted(k for k in set(a) | set(b) if k != "epochs" and a.get(k) != b.get(k))
         if diff:
             show = lambda d: str([d.get(k) for k in diff])[:200]
             raise ABError(f"{out} holds a run with another configuration ({', '.join(diff)}: "
@@ -191,6 +192,13 @@ def check_resume(out: Path, setup: Setup, data: dict) -> None:
         return
     out.mkdir(parents=True, exist_ok=True)
     _atomic_text(path, json.dumps(new, indent=2, sort_keys=True) + "\n")
+
+
+def _settings(config: dict) -> dict:
+    """``config`` without how its settings were given (``--set``'s ``overrides``): a run resumes
+    under any options that resolve to the settings it was stored with."""
+    extra = {k: v for k, v in (config.get("extra") or {}).items() if k != "overrides"}
+    return {**config, "extra": extra}
 
 
 def _atomic_text(path: Path, text: str) -> None:
