@@ -25,6 +25,13 @@ and it has no bending term (its dihedral angles never leave zero). Any other tri
 (``plate_hanging``: gravity through the thickness) is solved in 3-D with the dihedral bending
 term, without which a flat sheet has no out-of-plane stiffness.
 
+``integrator = "newmark"`` (``INTEGRATORS``; opt-in) steps by Newmark's average acceleration
+instead, ``x_{k+1} = x_k + h v_k + h^2 (a_k + a_{k+1}) / 4``, ``v_{k+1} = 2 (x_{k+1} - x_k) / h
+- v_k``, ``a`` from the equation of motion at each state: the same minimisation with ``h / 2``
+and the velocity ``2 v_k + h a_k / 2 + h c v_k / (2 m)`` (``_implicit_form``). Second order
+(from rest it moves a node ``h^2 a / 2``, backward Euler ``h^2 a``), A- but not L-stable: stiff
+modes ring rather than decay. Its training frames take the stored velocities.
+
 Gradients: at the converged ``x*`` one more Newton step ``x* - A^{-1} r(x*)`` is taken with the
 residual ``r`` on the autograd graph and the matrix ``A`` detached; its derivative is the
 implicit-function derivative ``-A^{-1} dr/d(theta, x_k, v_k)``, never back-propagated through
@@ -45,15 +52,15 @@ import warnings
 
 import numpy as np
 import torch
-from scipy.linalg import lapack
 from torch import nn
 
+from meshodenet import newton_linalg as la
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.energy import TYPES, BatchedEnergy, ElementEnergy, EnergySystem, measure, static_features
 from meshodenet.implicit import NewtonError
 from meshodenet.interface import TrajectoryModel
 from meshodenet.models.common import preset_configs
-from meshodenet.models.energy_config import SOLVERS, STIFFNESS_PRIORS, EnergyConfig
+from meshodenet.models.energy_config import INTEGRATORS, SOLVERS, STIFFNESS_PRIORS, EnergyConfig
 from meshodenet.train import TrainConfig
 
 
@@ -70,6 +77,7 @@ class ImplicitEnergy(TrajectoryModel):
 
     def __init__(self, mesh: Mesh, config: EnergyConfig, train: Trajectories | None = None):
         super().__init__(mesh, config)
+        self.integrator_id = config.integrator
         feats = static_features(mesh)
         # a planar mesh loaded in its plane never leaves it (the in-plane solve below): its
         # dihedral angles stay at rest, so it gets no bending term
@@ -145,6 +153,37 @@ class ImplicitEnergy(TrajectoryModel):
             + sys.gradient(x, create_graph, geo)
         return r.reshape(len(x), -1)
 
+    def _acceleration(self, sys, x, v, create_graph: bool = False) -> torch.Tensor:
+        """``a = (f - c v - dU/dx) / m`` at ``(x, v)`` (zero on clamped nodes)."""
+        m, c = self.mass[:, None], self.damping[:, None]
+        return (self.force - c * v - sys.gradient(x, create_graph)) / m * self.free[:, None]
+
+    def _implicit_form(self, vk, ak, h):
+        """``(v', h')`` with which the backward-Euler step's equations (``_residual``) are the
+        configured step's from ``(x_k, v_k, a_k)`` over ``h``: backward Euler ``(v_k, h)``;
+        Newmark's average acceleration (``x_{k+1} = x_k + h v_k + h^2 (a_k + a_{k+1}) / 4``,
+        ``v_{k+1} = v_k + h (a_k + a_{k+1}) / 2``, ``m a_{k+1} = f - c v_{k+1} - dU/dx``)
+        ``(2 v_k + h a_k / 2 + h c v_k / (2 m), h / 2)``: the predictor and the constant drag
+        force ``c v_k`` folded into one velocity."""
+        if self.config.integrator == "backward_euler":
+            return vk, h
+        m, c = self.mass[:, None], self.damping[:, None]
+        return (2 * vk + h * ak / 2 + h * c / (2 * m) * vk) * self.free[:, None], h / 2
+
+    def _advance(self, sys, xk, vk, xn, h):
+        """``(v_{k+1}, a_{k+1})`` after the step from ``(x_k, v_k)`` to ``xn`` (``a``: None
+        for backward Euler, Newmark's from the equation of motion at the new state)."""
+        if self.config.integrator == "backward_euler":
+            return (xn - xk) / h, None
+        vn = (2 / h * (xn - xk) - vk) * self.free[:, None]
+        return vn, self._acceleration(sys, xn, vn, torch.is_grad_enabled())
+
+    def _start(self, sys, x, v):
+        """The acceleration a step from ``(x, v)`` needs (Newmark's; None for backward Euler)."""
+        if self.config.integrator == "backward_euler":
+            return None
+        return self._acceleration(sys, x, v, torch.is_grad_enabled())
+
     def _matrix(self, sys, x, h, act, geo=None, xk=None, create_graph: bool = False):
         """The Newton matrix ``diag(m/h^2 + c/h) + d2U/dx2`` on the coordinates ``act``
         (``xk``, the step's start, is for a subclass whose damping depends on it; with
@@ -153,33 +192,8 @@ class ImplicitEnergy(TrajectoryModel):
         d = (self.mass / h**2 + self.damping / h).repeat_interleave(3)[act]
         return A + torch.diag(d)
 
-    @staticmethod
-    def _factor(A, convexify: bool = False):
-        """A factorisation of symmetric ``A (B, n, n)``: Cholesky where ``A`` is positive
-        definite, else LU (the exact Newton step), or with ``convexify`` Cholesky of ``A`` with
-        growing diagonal shifts (a descent direction of the objective)."""
-        L, info = torch.linalg.cholesky_ex(A)
-        if not torch.any(info):
-            return "cholesky", L
-        if not convexify:
-            return "lu", torch.linalg.lu_factor(A)
-        shift = 1e-6
-        while torch.any(info) and shift < 1e4:
-            d = torch.diagonal(A, dim1=1, dim2=2).abs()
-            bad = (info > 0).to(A.dtype)[:, None, None]
-            L, info = torch.linalg.cholesky_ex(A + bad * shift * torch.diag_embed(d))
-            shift *= 10
-        return "cholesky", L
-
-    @staticmethod
-    def _substitute(factor, b):
-        kind, f = factor
-        if kind == "cholesky":
-            return torch.cholesky_solve(b[..., None], f)[..., 0]
-        return torch.linalg.lu_solve(*f, b[..., None])[..., 0]
-
     def _solve(self, A, b):
-        return self._substitute(self._factor(A), b)
+        return la.substitute(la.factor(A), b)
 
     def _objective(self, sys, x, xk, vk, h):
         """The step's objective per graph ``(B,)`` (its gradient is ``_residual``)."""
@@ -205,12 +219,12 @@ class ImplicitEnergy(TrajectoryModel):
             r = self._residual(sys, x, xk, vk, h, geo=geo)[:, act]
             if factor is None:
                 A = self._matrix(sys, x, h, act, geo, xk)
-                factor = self._factor(A)
-            dx = self._substitute(factor, -r)
+                factor = la.factor(A)
+            dx = la.substitute(factor, -r)
             if factor[0] == "lu" and bool(((r * dx).sum(1) >= 0).any()):
                 # not a descent direction (the objective is not convex here): convexify
-                factor = self._factor(A, convexify=True)
-                dx = self._substitute(factor, -r)
+                factor = la.factor(A, convexify=True)
+                dx = la.substitute(factor, -r)
             step = float(dx.abs().max())
             if not math.isfinite(step):
                 break
@@ -246,7 +260,8 @@ class ImplicitEnergy(TrajectoryModel):
         return out
 
     def step(self, sys, xk, vk, h, act, where: str = "a step"):
-        """One backward-Euler step: ``x_{k+1}``, differentiable by the implicit function."""
+        """One step in backward-Euler form (``vk``, ``h``: ``_implicit_form``'s): ``x_{k+1}``,
+        differentiable by the implicit function."""
         grad = torch.is_grad_enabled()
         with torch.no_grad():
             x, A = self._newton(sys, xk, vk, h, act, where, chord=not grad)
@@ -301,10 +316,11 @@ class ImplicitEnergy(TrajectoryModel):
             step = lambda x, v, h, where: self.step(sys, x, v, h, act, where)  # noqa: E731
         pos.append(x)
         vel.append(v)
+        a = self._start(sys, x, v)
         for k in range(len(t) - 1):
             h = float(t[k + 1] - t[k])
-            xn = step(x, v, h, f"interval {k} (t = {float(t[k]):.4g} s)")
-            v, x = (xn - x) / h, xn
+            xn = step(x, *self._implicit_form(v, a, h), f"interval {k} (t = {float(t[k]):.4g} s)")
+            (v, a), x = self._advance(sys, x, v, xn, h), xn
             pos.append(x)
             vel.append(v)
         return torch.stack(pos, 1).to(dtype), torch.stack(vel, 1).to(dtype)
@@ -326,11 +342,11 @@ class ImplicitEnergy(TrajectoryModel):
         idx = torch.arange(B, device=xk.device)
         y = yk + hv
         phi, r, ab = evaluate(y, idx, 2)
-        facs = [self._band_factor(a) for a in ab.cpu().numpy()]
+        facs = [la.band_factor(a) for a in ab.cpu().numpy()]
         prev = torch.full((B,), math.inf, dtype=y.dtype, device=y.device)
         out = torch.empty_like(y)
         for done in range(1, self.config.newton_max_iter + 1):
-            dx = self._band_solve(facs, r)
+            dx = la.band_solve(facs, r)
             step = dx.abs().amax(1)
             if not bool(torch.isfinite(step).all()):
                 break
@@ -350,7 +366,7 @@ class ImplicitEnergy(TrajectoryModel):
             y, phi, r, ab = self._search(evaluate, idx, y, dx, r, phi,
                                          2 if bool(refactor.any()) else 1)
             for j in torch.nonzero(refactor)[:, 0].tolist():
-                facs[j] = self._band_factor(ab[j].cpu().numpy())
+                facs[j] = la.band_factor(ab[j].cpu().numpy())
         worst = int(torch.nan_to_num(step, nan=math.inf).argmax())
         raise NewtonError(f"{self.name}: Newton did not converge at {where}, h = {h:.4g} s, "
                           f"trajectory {int(idx[worst])} of the batch: last step "
@@ -416,39 +432,6 @@ class ImplicitEnergy(TrajectoryModel):
                 ab_t[j] = aa
         return trial, phi_t, r_t, ab_t
 
-    def _band_factor(self, ab: np.ndarray):
-        """A factorisation of the symmetric matrix in lower band storage ``ab (w + 1, n)``:
-        LAPACK's banded Cholesky (``dpbtrf``); where it is not positive definite, ``_factor``'s
-        on the dense matrix (its LU, kept with the matrix for the convexified Cholesky)."""
-        c, info = lapack.dpbtrf(ab, lower=1)
-        if info == 0:
-            return "band", c
-        w, n = ab.shape
-        A = np.zeros((n, n))
-        for k in range(w):
-            i = np.arange(n - k)
-            A[i + k, i] = A[i, i + k] = ab[k, :n - k]
-        A = torch.as_tensor(A)[None]
-        return "dense", self._factor(A), A
-
-    def _band_solve(self, facs: list, r: torch.Tensor) -> torch.Tensor:
-        """The Newton steps ``-A^{-1} r`` ``(b, n)`` of the factorised matrices ``facs`` (one
-        per row of ``r``); a dense LU step that is not a descent direction is replaced by the
-        convexified one (``_newton``)."""
-        rhs = (-r).cpu().numpy()
-        out = np.empty_like(rhs)
-        for j, fac in enumerate(facs):
-            if fac[0] == "band":
-                out[j] = lapack.dpbtrs(fac[1], rhs[j], lower=1)[0]
-                continue
-            b = torch.as_tensor(rhs[j])[None]
-            dx = self._substitute(fac[1], b)
-            if fac[1][0] == "lu" and float((b * dx).sum()) <= 0:
-                facs[j] = fac = ("dense", self._factor(fac[2], convexify=True), fac[2])
-                dx = self._substitute(fac[1], b)
-            out[j] = dx[0].numpy()
-        return torch.as_tensor(out).to(r)
-
     # --- statistics and initial stiffness (training split only) ------------------------------
     @torch.no_grad()
     def _statistics(self, train: Trajectories) -> None:
@@ -468,8 +451,9 @@ class ImplicitEnergy(TrajectoryModel):
                 getattr(self, f"{k}_qrange").copy_(torch.stack([qh.min(), qh.max()]))
 
     def _frames(self, data: Trajectories, samples: torch.Tensor):
-        """``(traj, x_k, v_k, x_{k+1}, h)`` of samples: ``v_k`` the backward difference
-        (the stored ``v_0`` at frame 0), float64."""
+        """``(traj, x_k, v_k, x_{k+1}, h)`` of samples, float64: ``v_k`` the backward
+        difference (the stored ``v_0`` at frame 0) as in a backward-Euler rollout; Newmark's,
+        whose velocity is the trajectory's own, the stored one."""
         samples = samples.to(data.pos.device)
         T = data.n_frames
         traj, k = samples // (T - 1), samples % (T - 1)
@@ -481,6 +465,8 @@ class ImplicitEnergy(TrajectoryModel):
         hk = (t[k] - t[(k - 1).clamp(min=0)]).clamp_min(1e-300)[:, None, None]
         vk = torch.where((k == 0)[:, None, None], data.vel[traj, 0].to(torch.float64),
                          (pos[traj, k] - pos[traj, (k - 1).clamp(min=0)]) / hk)
+        if self.config.integrator == "newmark":
+            vk = data.vel[traj, k].to(torch.float64)
         return traj, pos[traj, k], vk * self.free[:, None], pos[traj, k + 1], float(h[0])
 
     @torch.no_grad()
@@ -558,6 +544,7 @@ class ImplicitEnergy(TrajectoryModel):
         traj, xk, vk, x1, h = self._frames(data, samples)
         sys = self.system(data.youngs[traj])
         act = self._active(xk, vk)
+        vk, h = self._implicit_form(vk, self._start(sys, xk, vk), h)
         geo = sys.geometry(x1)
         A = self._matrix(sys, x1, h, act, geo, xk,
                          create_graph=self.config.exact_loss_gradient)
@@ -577,11 +564,12 @@ class ImplicitEnergy(TrajectoryModel):
         _, xk, vk, _, h = self._frames(data, traj * (T - 1) + start)
         sys = self.system(data.youngs[traj])
         act = self._active(xk, vk)
+        ak = self._start(sys, xk, vk)
         loss = 0.0
         for s in range(S):
             end = (start + s + 1).clamp(max=T - 1)
-            xn = self.step(sys, xk, vk, h, act, f"window step {s}")
-            vk, xk = (xn - xk) / h, xn
+            xn = self.step(sys, xk, *self._implicit_form(vk, ak, h), act, f"window step {s}")
+            (vk, ak), xk = self._advance(sys, xk, vk, xn, h), xn
             loss = loss + ((xk - data.pos[traj, end].to(torch.float64))[:, self.free] ** 2) \
                 .sum(-1).mean()
         return loss / (S * float(self.ystats[3]))
@@ -606,4 +594,4 @@ def energy_presets(preset: str, kind: str) -> tuple[TrainConfig, EnergyConfig]:
     return preset_configs(preset, kind, QUICK, EnergyConfig, dict(hidden=8, layers=1))
 
 
-__all__ = ["EnergyConfig", "ImplicitEnergy", "STIFFNESS_PRIORS", "energy_presets"]
+__all__ = ["EnergyConfig", "INTEGRATORS", "ImplicitEnergy", "STIFFNESS_PRIORS", "energy_presets"]

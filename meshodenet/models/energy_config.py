@@ -22,7 +22,7 @@ class EnergyConfig:
     ``plate_hanging``, docs/ENERGY.md "Training"); ``clamp_q``: each element MLP sees its
     measure ``qhat`` clamped to the range the training frames span (``g`` constant beyond it,
     so the element energy is quadratic there, never softening where no data constrained it;
-    docs/ENERGY.md "Bending")."""
+    docs/ENERGY.md "Bending"); ``integrator``: the step (a key of ``INTEGRATORS``)."""
 
     hidden: int = 32
     layers: int = 2
@@ -32,6 +32,7 @@ class EnergyConfig:
     stiffness_prior: str = "uniform"
     exact_loss_gradient: bool = False
     clamp_q: bool = False
+    integrator: str = "backward_euler"
 
     def __post_init__(self):
         for name, lo in (("hidden", 1), ("layers", 0), ("shooting", 0), ("newton_max_iter", 1)):
@@ -43,6 +44,9 @@ class EnergyConfig:
                 raise ValueError(f"{owner}.{name} must be a bool, got {getattr(self, name)!r}")
         if not self.newton_rtol > 0:
             raise ValueError(f"{owner}.newton_rtol must be > 0, got {self.newton_rtol!r}")
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"{owner}.integrator must be one of {', '.join(INTEGRATORS)}, "
+                             f"got {self.integrator!r}")
         if self.stiffness_prior not in STIFFNESS_PRIORS:
             raise ValueError(f"{owner}.stiffness_prior must be one of "
                              f"{', '.join(STIFFNESS_PRIORS)}, got {self.stiffness_prior!r}")
@@ -57,6 +61,17 @@ STIFFNESS_PRIORS = {
     # per element, mean 1): on the plate the uniform fit explains 0.1 % of the balance and
     # starts about 770 times too soft, this one explains 99.6 % (docs/ENERGY.md)
     "features": "a least-squares stiffness per element, linear in its static features",
+}
+
+
+#: The step of one saved interval ``h`` (``EnergyConfig.integrator``), both solved as the
+#: minimisation of ``ImplicitEnergy``'s backward-Euler form (``ImplicitEnergy._implicit_form``):
+INTEGRATORS = {
+    # first order, L-stable: from rest it moves a node h^2 a where the truth moves ~h^2 a / 2
+    "backward_euler": "backward Euler (first order, L-stable)",
+    # second order, A-stable, no numerical damping; exact from rest under a constant load;
+    # carries the acceleration (docs/ENERGY.md, "Newmark")
+    "newmark": "Newmark's average acceleration (trapezoidal; second order)",
 }
 
 

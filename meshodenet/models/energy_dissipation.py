@@ -75,6 +75,10 @@ class DissipationConfig(EnergyConfig):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
             raise ValueError(f"DissipationConfig.damping_step must be a finite number > 0, "
                              f"got {v!r}")
+        if self.integrator != "backward_euler":  # its learned drag is backward Euler's
+            raise ValueError(f"DissipationConfig.integrator must be 'backward_euler' (the "
+                             f"learned dissipation steps by backward Euler only), got "
+                             f"{self.integrator!r}")
         if self.damping_train not in DAMPING_TRAIN:
             raise ValueError(f"DissipationConfig.damping_train must be one of "
                              f"{', '.join(DAMPING_TRAIN)}, got {self.damping_train!r}")
