@@ -51,13 +51,14 @@ def test_newmark_converges_at_second_order():
     assert errs[0] > 1e-10 and all(1.8 < o < 2.3 for o in orders), (errs, orders)
 
 
-def test_first_step_from_rest_moves_half_as_far_as_backward_euler():
-    """From rest a short step moves a node h^2 a / 2 (the truth to second order); backward
-    Euler's moves it h^2 a: the step-1 error of docs/ENERGY.md, "Newmark"."""
+@pytest.mark.parametrize("gamma", [0.5, 0.75, 1.0])
+def test_first_step_from_rest_moves_half_as_far_as_backward_euler(gamma):
+    """From rest a short step moves a node h^2 a / 2 (the truth to second order) whatever
+    ``gamma``; backward Euler's moves it h^2 a: the step-1 error of docs/ENERGY.md, "Newmark"."""
     t = torch.tensor([0.0, 1e-6], dtype=torch.float64)  # drag and stiffness: O(h) relative
     moves = {}
     for integrator in ("backward_euler", "newmark"):  # Newton to round-off: moves of 1e-12 m
-        model, x0, v0, y = _quadratic_chain(integrator, newton_rtol=1e-14)
+        model, x0, v0, y = _quadratic_chain(integrator, newton_rtol=1e-14, newmark_gamma=gamma)
         with torch.no_grad():
             moves[integrator] = model.rollout(x0, v0, y, t)[0][:, 1] - x0
             a0 = model._acceleration(model.system(y), x0, v0)
@@ -69,13 +70,14 @@ def test_first_step_from_rest_moves_half_as_far_as_backward_euler():
     torch.testing.assert_close(be, 1e-12 * a0[:, free], **tol)
 
 
+@pytest.mark.parametrize("gamma", [0.5, 0.75])
 @pytest.mark.parametrize("make", [rod_arrays, strip_arrays])
-def test_losses_vanish_on_the_models_own_rollouts(make):
+def test_losses_vanish_on_the_models_own_rollouts(make, gamma):
     """Trajectories the model rolled out itself (its velocities stored) are fitted exactly:
     the one-step loss and a window loss are round-off there, not on the fixture's data, and
     both have finite gradients on the data."""
     arrays = make(B=2, T=6)
-    model, tr = _model(arrays, integrator="newmark")
+    model, tr = _model(arrays, integrator="newmark", newmark_gamma=gamma)
     with torch.no_grad():
         pos, vel = model.rollout(tr.pos[:, 0], tr.vel[:, 0], tr.youngs, tr.t)
     own = Trajectories(pos=pos, vel=vel, youngs=tr.youngs, t=tr.t)
@@ -113,5 +115,43 @@ def test_configurations_that_refuse_it():
     with pytest.raises(ValueError, match="EnergyConfig.integrator must be one of "
                                          "backward_euler, newmark, got 'rk4'"):
         EnergyConfig(integrator="rk4")
+    for bad in (0.4, 1.5, True, "0.75"):
+        with pytest.raises(ValueError, match=r"EnergyConfig.newmark_gamma must be a number in "
+                                             r"\[0.5, 1\], got " + repr(bad)):
+            EnergyConfig(integrator="newmark", newmark_gamma=bad)
     with pytest.raises(ValueError, match="DissipationConfig.integrator must be 'backward_euler'"):
         DissipationConfig(integrator="newmark")
+
+
+@pytest.mark.parametrize("integrator", ["backward_euler", "newmark"])
+def test_a_failed_interval_is_retried_in_halves(monkeypatch, integrator):
+    """``max_halvings``: an interval whose Newton fails is taken as two half steps (the same
+    frames as a rollout sampled twice as finely there); without halvings, or with too few, the
+    failure stands."""
+    from meshodenet.implicit import NewtonError
+    from meshodenet.models.energy import ImplicitEnergy
+
+    arrays = rod_arrays()
+    model, tr = _model(arrays, integrator=integrator, newmark_gamma=0.75)
+    x0, v0, y, t = tr.pos[:1, 0], tr.vel[:1, 0], tr.youngs[:1], tr.t[:5]
+    fine = torch.cat([t[:3], (t[2:3] + t[3:4]) / 2, t[3:]])  # interval 2 in halves
+    with torch.no_grad():
+        ref, vref = model.rollout(x0, v0, y, fine)
+    real = ImplicitEnergy._newton_batched
+
+    def failing(self, be, xk, vk, h, where):  # interval 2 fails at its full length
+        if where.startswith("interval 2 ") and "half" not in where:
+            raise NewtonError(f"did not converge at {where}")
+        return real(self, be, xk, vk, h, where)
+
+    monkeypatch.setattr(ImplicitEnergy, "_newton_batched", failing)
+    with torch.no_grad(), pytest.raises(NewtonError, match="interval 2"):
+        model.rollout(x0, v0, y, t)
+    model.config = dataclasses.replace(model.config, max_halvings=1)
+    with torch.no_grad():
+        pos, vel = model.rollout(x0, v0, y, t)
+    keep = [0, 1, 2, 4, 5]  # the fine rollout's frames at t
+    torch.testing.assert_close(pos, ref[:, keep], rtol=0, atol=1e-12)
+    torch.testing.assert_close(vel, vref[:, keep], rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match="max_halvings must be an int >= 0, got -1"):
+        EnergyConfig(max_halvings=-1)

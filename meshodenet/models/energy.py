@@ -161,21 +161,28 @@ class ImplicitEnergy(TrajectoryModel):
     def _implicit_form(self, vk, ak, h):
         """``(v', h')`` with which the backward-Euler step's equations (``_residual``) are the
         configured step's from ``(x_k, v_k, a_k)`` over ``h``: backward Euler ``(v_k, h)``;
-        Newmark's average acceleration (``x_{k+1} = x_k + h v_k + h^2 (a_k + a_{k+1}) / 4``,
-        ``v_{k+1} = v_k + h (a_k + a_{k+1}) / 2``, ``m a_{k+1} = f - c v_{k+1} - dU/dx``)
-        ``(2 v_k + h a_k / 2 + h c v_k / (2 m), h / 2)``: the predictor and the constant drag
-        force ``c v_k`` folded into one velocity."""
+        Newmark's with ``gamma`` and ``beta = gamma^2`` (``x_{k+1} = p + beta h^2 a_{k+1}``,
+        ``p = x_k + h v_k + (1/2 - beta) h^2 a_k``; ``v_{k+1} = q + gamma h a_{k+1}``, ``q = v_k
+        + (1 - gamma) h a_k``; ``m a_{k+1} = f - c v_{k+1} - dU/dx``) ``((p - x_k) / h' - h' K /
+        m, h' = gamma h)`` with ``K = c (q - (p - x_k) / h')``: the predictor and the constant
+        drag force folded into one velocity (``gamma = 1/2``: ``2 v_k + h a_k / 2 + h c v_k /
+        (2 m)``)."""
         if self.config.integrator == "backward_euler":
             return vk, h
+        g = self.config.newmark_gamma
         m, c = self.mass[:, None], self.damping[:, None]
-        return (2 * vk + h * ak / 2 + h * c / (2 * m) * vk) * self.free[:, None], h / 2
+        p, q = h * vk + (0.5 - g * g) * h * h * ak, vk + (1 - g) * h * ak  # p - x_k
+        hp = g * h
+        return (p / hp - hp * c * (q - p / hp) / m) * self.free[:, None], hp
 
-    def _advance(self, sys, xk, vk, xn, h):
-        """``(v_{k+1}, a_{k+1})`` after the step from ``(x_k, v_k)`` to ``xn`` (``a``: None
-        for backward Euler, Newmark's from the equation of motion at the new state)."""
+    def _advance(self, sys, xk, vk, ak, xn, h):
+        """``(v_{k+1}, a_{k+1})`` after the step from ``(x_k, v_k, a_k)`` to ``xn`` (``a``:
+        None for backward Euler, Newmark's from the equation of motion at the new state)."""
         if self.config.integrator == "backward_euler":
             return (xn - xk) / h, None
-        vn = (2 / h * (xn - xk) - vk) * self.free[:, None]
+        g = self.config.newmark_gamma
+        a = (xn - xk - h * vk - (0.5 - g * g) * h * h * ak) / (g * g * h * h)
+        vn = (vk + (1 - g) * h * ak + g * h * a) * self.free[:, None]
         return vn, self._acceleration(sys, xn, vn, torch.is_grad_enabled())
 
     def _start(self, sys, x, v):
@@ -318,12 +325,23 @@ class ImplicitEnergy(TrajectoryModel):
         vel.append(v)
         a = self._start(sys, x, v)
         for k in range(len(t) - 1):
-            h = float(t[k + 1] - t[k])
-            xn = step(x, *self._implicit_form(v, a, h), f"interval {k} (t = {float(t[k]):.4g} s)")
-            (v, a), x = self._advance(sys, x, v, xn, h), xn
+            x, v, a = self._interval(step, sys, x, v, a, float(t[k + 1] - t[k]),
+                                     f"interval {k} (t = {float(t[k]):.4g} s)")
             pos.append(x)
             vel.append(v)
         return torch.stack(pos, 1).to(dtype), torch.stack(vel, 1).to(dtype)
+
+    def _interval(self, step, sys, x, v, a, h, where: str, depth: int = 0):
+        """``(x, v, a)`` after an interval ``h``: one step, or where its Newton fails two steps
+        of ``h / 2``, up to ``max_halvings`` times over (then ``NewtonError``)."""
+        try:
+            xn = step(x, *self._implicit_form(v, a, h), where)
+        except NewtonError:
+            if depth >= self.config.max_halvings:
+                raise
+            x, v, a = self._interval(step, sys, x, v, a, h / 2, f"{where}, first half", depth + 1)
+            return self._interval(step, sys, x, v, a, h / 2, f"{where}, second half", depth + 1)
+        return (xn, *self._advance(sys, x, v, a, xn, h))
 
     # --- the batched solver (rollouts without gradients) --------------------------------------
     @torch.no_grad()
@@ -569,7 +587,7 @@ class ImplicitEnergy(TrajectoryModel):
         for s in range(S):
             end = (start + s + 1).clamp(max=T - 1)
             xn = self.step(sys, xk, *self._implicit_form(vk, ak, h), act, f"window step {s}")
-            (vk, ak), xk = self._advance(sys, xk, vk, xn, h), xn
+            (vk, ak), xk = self._advance(sys, xk, vk, ak, xn, h), xn
             loss = loss + ((xk - data.pos[traj, end].to(torch.float64))[:, self.free] ** 2) \
                 .sum(-1).mean()
         return loss / (S * float(self.ystats[3]))
