@@ -81,7 +81,7 @@ INTEGRATORS = {
     # first order, L-stable: from rest it moves a node h^2 a where the truth moves ~h^2 a / 2
     "backward_euler": "backward Euler (first order, L-stable)",
     # second order, A-stable, no numerical damping; exact from rest under a constant load;
-    # carries the acceleration (docs/ENERGY.md, "Newmark")
+    # carries the acceleration (docs/ENERGY.md, "What it is" and "Bending")
     "newmark": "Newmark's average acceleration (trapezoidal; second order)",
 }
 
