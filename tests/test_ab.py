@@ -114,6 +114,21 @@ def test_ours_resume_is_exact(tiny_case, tmp_path):
     assert _train(tiny_case, tmp_path / "b", "ours", 2, "--seed", "7") == 2
 
 
+def test_a_run_stored_before_a_field_existed_resumes_at_its_default(tiny_case, tmp_path):
+    """A run whose ``ab_config.json`` predates model fields (the convention fields were added
+    after the first A/B runs) was trained with their defaults: it resumes where the settings
+    resolve to them, and is refused where they do not."""
+    out = tmp_path / "old"
+    assert _train(tiny_case, out, "ours", 1) == 0
+    cfg = json.loads((out / core.CONFIG_FILE).read_text())
+    for field in ("acc_scale", "loss", "layout"):  # the rod's paper preset keeps the defaults
+        del cfg["extra"]["model"][field]
+    (out / core.CONFIG_FILE).write_text(json.dumps(cfg))
+    assert _train(tiny_case, out, "ours", 1, "--set", "model.acc_scale=velocity") == 2
+    assert _train(tiny_case, out, "ours", 2) == 0
+    assert list(_rows(out)["epoch"]) == [0, 1, 2, 0]
+
+
 def test_merge_table_and_figure(tiny_case, tmp_path):
     assert _train(tiny_case, tmp_path / "ours", "ours", 1) == 0
     auth = tmp_path / "authors"  # an authors' run directory, written by hand

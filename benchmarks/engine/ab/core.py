@@ -169,10 +169,12 @@ class Setup:
         return self.max_train is not None or self.max_test is not None
 
 
-def check_resume(out: Path, setup: Setup, data: dict) -> None:
+def check_resume(out: Path, setup: Setup, data: dict, defaults: dict | None = None) -> None:
     """Write ``out/ab_config.json`` for a new run, or refuse (``ABError``) to continue a run
     stored with another configuration (anything but ``epochs`` and how the settings were given,
-    ``_settings``) or other data (``data``: what identifies it, e.g. the case hash)."""
+    ``_settings``) or other data (``data``: what identifies it, e.g. the case hash).
+    ``defaults`` (``{section of extra: {field: default}}``): a field that a stored run predates
+    has its default there (the run was trained with it)."""
     path = out / CONFIG_FILE
     new = {**setup.to_json(), "data": data}
     if path.exists():
@@ -180,7 +182,7 @@ def check_resume(out: Path, setup: Setup, data: dict) -> None:
             old = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise ABError(f"{path}: unreadable ({e}); choose another --out") from None
-        a, b = _settings(old), _settings(new)
+        a, b = _settings(_with_defaults(old, defaults or {})), _settings(new)
         diff = sorted(k for k in set(a) | set(b) if k != "epochs" and a.get(k) != b.get(k))
         if diff:
             show = lambda d: str([d.get(k) for k in diff])[:200]
@@ -192,6 +194,15 @@ def check_resume(out: Path, setup: Setup, data: dict) -> None:
         return
     out.mkdir(parents=True, exist_ok=True)
     _atomic_text(path, json.dumps(new, indent=2, sort_keys=True) + "\n")
+
+
+def _with_defaults(config: dict, defaults: dict) -> dict:
+    """``config`` with the fields its ``extra`` sections lack taken from ``defaults``."""
+    extra = dict(config.get("extra") or {})
+    for section, fields in defaults.items():
+        if isinstance(extra.get(section), dict):
+            extra[section] = {**fields, **extra[section]}
+    return {**config, "extra": extra}
 
 
 def _settings(config: dict) -> dict:

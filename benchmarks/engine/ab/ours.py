@@ -120,7 +120,9 @@ def run(setup: core.Setup, out: Path, data_dir=None, overrides=(), progress: boo
     setup = setup.with_extra(preset="paper", overrides=list(overrides),
                              train=_jsonable(train_cfg, "epochs"), model=_jsonable(model_cfg),
                              train_idx=tr_idx.tolist(), val_idx=val_idx.tolist())
-    core.check_resume(out, setup, core.data_id(tr, te))
+    core.check_resume(out, setup, core.data_id(tr, te),  # fields a stored run predates
+                      {"train": _jsonable(type(train_cfg)(), "epochs"),
+                       "model": _jsonable(type(model_cfg)())})
     full = Trajectories.from_arrays(tr, name=f"{setup.case}/train.npz")
     train, val = full.subset(torch.as_tensor(tr_idx)), full.subset(torch.as_tensor(val_idx))
     test = Trajectories.from_arrays(te, name=f"{setup.case}/test.npz")
