@@ -196,6 +196,12 @@ def check_resume(out: Path, setup: Setup, data: dict, defaults: dict | None = No
     _atomic_text(path, json.dumps(new, indent=2, sort_keys=True) + "\n")
 
 
+def jsonable(cfg, *leave_out: str) -> dict:
+    """A settings dataclass as ``ab_config.json`` stores it (JSON types: tuples are lists),
+    without the fields ``leave_out``."""
+    return json.loads(json.dumps({k: v for k, v in asdict(cfg).items() if k not in leave_out}))
+
+
 def _with_defaults(config: dict, defaults: dict) -> dict:
     """``config`` with the fields its ``extra`` sections lack taken from ``defaults``."""
     extra = dict(config.get("extra") or {})

@@ -87,13 +87,11 @@ def variant_code(cfg: dict) -> str:
     ``ours+acc_scale=velocity``; the plate's ``paper`` preset, the authors' conventions,
     ``ours+acc_scale=velocity+loss=rms+layout=authors``). From the resolved settings the run
     stored, so a label does not change when a preset does."""
-    import dataclasses
-
     from meshodenet.models.meshodenet import MeshODENetConfig
 
     extra = cfg.get("extra") or {}
     model = extra.get("model") or {}
-    default = json.loads(json.dumps(dataclasses.asdict(MeshODENetConfig())))
+    default = core.jsonable(MeshODENetConfig())
     sets = [f"{k}={model[k]}" for k in default if k in model and model[k] != default[k]]
     sets += [o.split(".", 1)[-1] for o in extra.get("overrides") or [] if o.startswith("train.")]
     return "+".join(["ours", *sets])

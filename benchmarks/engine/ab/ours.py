@@ -118,11 +118,11 @@ def run(setup: core.Setup, out: Path, data_dir=None, overrides=(), progress: boo
     tr_idx, val_idx = validation_split(tr["youngs"], train_cfg.val_fraction, train_cfg.val_split,
                                        train_cfg.split_seed)
     setup = setup.with_extra(preset="paper", overrides=list(overrides),
-                             train=_jsonable(train_cfg, "epochs"), model=_jsonable(model_cfg),
+                             train=core.jsonable(train_cfg, "epochs"), model=core.jsonable(model_cfg),
                              train_idx=tr_idx.tolist(), val_idx=val_idx.tolist())
     core.check_resume(out, setup, core.data_id(tr, te),  # fields a stored run predates
-                      {"train": _jsonable(type(train_cfg)(), "epochs"),
-                       "model": _jsonable(type(model_cfg)())})
+                      {"train": core.jsonable(type(train_cfg)(), "epochs"),
+                       "model": core.jsonable(type(model_cfg)())})
     full = Trajectories.from_arrays(tr, name=f"{setup.case}/train.npz")
     train, val = full.subset(torch.as_tensor(tr_idx)), full.subset(torch.as_tensor(val_idx))
     test = Trajectories.from_arrays(te, name=f"{setup.case}/test.npz")
@@ -179,6 +179,3 @@ def _start(model, rec: Recorder, out: Path, setup: core.Setup, test, batch: int)
         rows.append(row)
     return rows, True
 
-
-def _jsonable(cfg, *leave_out: str) -> dict:
-    return {k: v for k, v in dataclasses.asdict(cfg).items() if k not in leave_out}
