@@ -1,6 +1,7 @@
 """Factorisations of Implicit-Energy's Newton matrices (``meshodenet.models.energy``):
 dense Cholesky with an LU fallback or convexifying shifts, and LAPACK's banded Cholesky for the
-batched solver's matrices in band storage."""
+batched solver's matrices in band storage; the batched solver's line search, on numpy
+arrays."""
 
 from __future__ import annotations
 
@@ -50,20 +51,61 @@ def band_factor(ab: np.ndarray):
     A = torch.as_tensor(A)[None]
     return "dense", factor(A), A
 
-def band_solve(facs: list, r: torch.Tensor) -> torch.Tensor:
+def band_solve(facs: list, r: np.ndarray) -> np.ndarray:
     """The Newton steps ``-A^{-1} r`` ``(b, n)`` of the factorised matrices ``facs`` (one
     per row of ``r``); a dense LU step that is not a descent direction is replaced by the
     convexified one (``ImplicitEnergy._newton``)."""
-    rhs = (-r).cpu().numpy()
-    out = np.empty_like(rhs)
+    out = np.empty_like(r)
     for j, fac in enumerate(facs):
         if fac[0] == "band":
-            out[j] = lapack.dpbtrs(fac[1], rhs[j], lower=1)[0]
+            out[j] = lapack.dpbtrs(fac[1], -r[j], lower=1)[0]
             continue
-        b = torch.as_tensor(rhs[j])[None]
+        b = torch.as_tensor(-r[j])[None]
         dx = substitute(fac[1], b)
         if fac[1][0] == "lu" and float((b * dx).sum()) <= 0:
             facs[j] = fac = ("dense", factor(fac[2], convexify=True), fac[2])
             dx = substitute(fac[1], b)
         out[j] = dx[0].numpy()
-    return torch.as_tensor(out).to(r)
+    return out
+
+
+def armijo_search(evaluate, idx, y, dx, r, phi, order: int, halvings: int = 12):
+    """``(y, phi, r, ab)`` at ``y + alpha dx`` per trajectory (numpy arrays), ``alpha``
+    halved from 1 until the objective decreases (Armijo), the full step where none does: the
+    batched solver's ``ImplicitEnergy._line_search``, the trial steps after the first on the
+    energy alone and only for the trajectories still searching."""
+    trial = y + dx
+    phi_t, r_t, ab_t = evaluate(trial, idx, order)
+    slope = (r * dx).sum(1)
+    ok = phi_t <= phi + 1e-4 * slope
+    if ok.all():
+        return trial, phi_t, r_t, ab_t
+    left = np.flatnonzero(~ok)
+    alpha = np.ones(len(left))
+    found = np.zeros(len(left), bool)
+    for _ in range(halvings - 1):
+        alpha = np.where(found, alpha, alpha / 2)
+        s = np.flatnonzero(~found)
+        j = left[s]
+        p, _, _ = evaluate(y[j] + alpha[s, None] * dx[j], idx[j], 0)
+        found[s] = p <= phi[j] + 1e-4 * alpha[s] * slope[j]
+        if found.all():
+            break
+    j = left[found]
+    if len(j):
+        trial[j] = y[j] + alpha[found, None] * dx[j]
+        p, rr, aa = evaluate(trial[j], idx[j], order)
+        phi_t[j], r_t[j] = p, rr
+        if ab_t is not None:
+            ab_t[j] = aa
+    return trial, phi_t, r_t, ab_t
+
+
+def on_numpy(evaluate, device):
+    """``evaluate(y, idx, order)`` of ``ImplicitEnergy._batched_objective`` on tensors (on
+    ``device``) as a function of numpy arrays (the batched solver's iteration)."""
+    def wrapped(y, idx, order):
+        out = evaluate(torch.from_numpy(y).to(device), torch.from_numpy(idx).to(device), order)
+        return tuple(None if o is None else o.cpu().numpy() for o in out)
+
+    return wrapped

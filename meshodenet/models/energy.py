@@ -57,6 +57,7 @@ from torch import nn
 from meshodenet import newton_linalg as la
 from meshodenet.data import Mesh, Trajectories
 from meshodenet.energy import TYPES, BatchedEnergy, ElementEnergy, EnergySystem, measure, static_features
+from meshodenet.energy_line import PlanarLineEnergy
 from meshodenet.implicit import NewtonError
 from meshodenet.interface import TrajectoryModel
 from meshodenet.models.common import preset_configs
@@ -74,6 +75,11 @@ class ImplicitEnergy(TrajectoryModel):
     grad_mode_id = "implicit"
     solver = "batched"
     on_newton_failure = "raise"
+    #: the batched solver evaluates a planar rod's energy in numpy (``_batched_energy``)
+    line_numpy = True
+    #: the batched solver's first guess adds the previous interval's Newton correction
+    #: (scaled by ``h^2``) to ``x_k + h v_k`` (``_newton_batched``)
+    newton_predictor = True
 
     def __init__(self, mesh: Mesh, config: EnergyConfig, train: Trajectories | None = None):
         super().__init__(mesh, config)
@@ -317,16 +323,17 @@ class ImplicitEnergy(TrajectoryModel):
         sys = self.system(youngs)
         act = self._active(x, v)
         if self.solver == "batched" and not torch.is_grad_enabled():
-            unknowns = BatchedEnergy(sys, act, self.mesh.n_nodes)
+            unknowns = self._batched_energy(sys, act)
             step = lambda x, v, h, where: self._newton_batched(unknowns, x, v, h, where)  # noqa: E731
         else:
             step = lambda x, v, h, where: self.step(sys, x, v, h, act, where)  # noqa: E731
         pos.append(x)
         vel.append(v)
         a = self._start(sys, x, v)
+        times = t.tolist()
         for k in range(len(t) - 1):
-            x, v, a = self._interval(step, sys, x, v, a, float(t[k + 1] - t[k]),
-                                     f"interval {k} (t = {float(t[k]):.4g} s)")
+            x, v, a = self._interval(step, sys, x, v, a, times[k + 1] - times[k],
+                                     f"interval {k} (t = {times[k]:.4g} s)")
             pos.append(x)
             vel.append(v)
         return torch.stack(pos, 1).to(dtype), torch.stack(vel, 1).to(dtype)
@@ -344,111 +351,109 @@ class ImplicitEnergy(TrajectoryModel):
         return (xn, *self._advance(sys, x, v, a, xn, h))
 
     # --- the batched solver (rollouts without gradients) --------------------------------------
+    def _batched_energy(self, sys, act):
+        """The batched solver's energy: ``BatchedEnergy``, or its numpy evaluation
+        ``PlanarLineEnergy`` where that applies (a planar rod solved in its plane on the CPU;
+        a subclass whose objective adds torch terms keeps ``line_numpy = False``)."""
+        be = BatchedEnergy(sys, act, self.mesh.n_nodes)
+        return PlanarLineEnergy(be) if self.line_numpy and PlanarLineEnergy.applies(be) else be
+
     @torch.no_grad()
-    def _newton_batched(self, be: BatchedEnergy, xk, vk, h, where: str):
+    def _newton_batched(self, be, xk, vk, h, where: str):
         """``x_{k+1} (B, N, 3)`` of every trajectory by its own Newton (as ``_newton`` with
         ``chord``: its own factorisation, chord and line-search decisions), the batch's
         energies evaluated together and converged trajectories dropping out. Works on the
         unknowns ``be.unknowns`` (banded order), the objective relative to ``x_k`` (the
-        constant ``f . x_k`` and the fixed coordinates left out)."""
+        constant ``f . x_k`` and the fixed coordinates left out); the iteration on numpy
+        arrays (the energy's evaluation in torch for a ``BatchedEnergy``)."""
         B = len(xk)
-        cols = be.unknowns
-        xkf = xk.reshape(B, -1)
-        yk, hv = xkf[:, cols], h * vk.reshape(B, -1)[:, cols]
         evaluate = self._batched_objective(be, xk, vk, h)
+        if not getattr(be, "numpy", False):
+            evaluate = la.on_numpy(evaluate, xk.device)
+        if "cols" not in be.__dict__:
+            be.cols = be.unknowns.cpu().numpy() if torch.is_tensor(be.unknowns) else be.unknowns
+        cols = be.cols
+        xkf = xk.reshape(B, -1).cpu().numpy()
         tol = self.config.newton_rtol * self.length
-        idx = torch.arange(B, device=xk.device)
-        y = yk + hv
+        idx = np.arange(B)
+        y = xkf[:, cols] + h * vk.reshape(B, -1).cpu().numpy()[:, cols]
+        guess = y.copy()
+        last = getattr(be, "last_correction", None) if self.newton_predictor else None
+        if last is not None and last[0].shape == y.shape:  # the previous interval's correction
+            y += (h / last[1]) ** 2 * last[0]
         phi, r, ab = evaluate(y, idx, 2)
-        facs = [la.band_factor(a) for a in ab.cpu().numpy()]
-        prev = torch.full((B,), math.inf, dtype=y.dtype, device=y.device)
-        out = torch.empty_like(y)
+        facs = [la.band_factor(a) for a in ab]
+        prev = np.full(B, math.inf)
+        out = np.empty_like(y)
         for done in range(1, self.config.newton_max_iter + 1):
             dx = la.band_solve(facs, r)
-            step = dx.abs().amax(1)
-            if not bool(torch.isfinite(step).all()):
-                break
+            step = np.abs(dx).max(1)
             conv = step <= tol
-            out[idx[conv]] = y[conv] + dx[conv]
-            live = torch.nonzero(~conv)[:, 0]
-            if not len(live):
-                xn = xkf.clone()
+            if conv.all():  # the whole (remaining) batch
+                out[idx] = y + dx
+                be.last_correction = (out - guess, h)
+                xn = xkf.copy()  # xkf shares xk's memory
                 xn[:, cols] = out
-                return xn.reshape(xk.shape)
-            if done == self.config.newton_max_iter:
+                return torch.from_numpy(xn).to(xk.device).reshape(xk.shape)
+            if done == self.config.newton_max_iter or not np.isfinite(step).all():
                 break
-            idx, y, dx, r, phi, step = idx[live], y[live], dx[live], r[live], phi[live], step[live]
-            facs = [facs[int(j)] for j in live]
-            refactor = step > prev[live] / 3
+            if conv.any():
+                out[idx[conv]] = y[conv] + dx[conv]
+                live = np.flatnonzero(~conv)
+                idx, y, dx, r, phi, step = (idx[live], y[live], dx[live], r[live], phi[live],
+                                            step[live])
+                facs, prev = [facs[j] for j in live], prev[live]
+            refactor = step > prev / 3
             prev = step
-            y, phi, r, ab = self._search(evaluate, idx, y, dx, r, phi,
-                                         2 if bool(refactor.any()) else 1)
-            for j in torch.nonzero(refactor)[:, 0].tolist():
-                facs[j] = la.band_factor(ab[j].cpu().numpy())
-        worst = int(torch.nan_to_num(step, nan=math.inf).argmax())
+            if refactor.any():
+                y, phi, r, ab = la.armijo_search(evaluate, idx, y, dx, r, phi, 2)
+                for j in np.flatnonzero(refactor):
+                    facs[j] = la.band_factor(ab[j])
+            else:
+                y, phi, r, _ = la.armijo_search(evaluate, idx, y, dx, r, phi, 1)
+        worst = int(np.nan_to_num(step, nan=math.inf).argmax())
         raise NewtonError(f"{self.name}: Newton did not converge at {where}, h = {h:.4g} s, "
                           f"trajectory {int(idx[worst])} of the batch: last step "
                           f"{float(step[worst]):.3g} m > {tol:.3g} m after {done} iterations "
-                          f"(largest residual {float(r[worst].abs().max()):.3g} N)")
+                          f"(largest residual {float(np.abs(r[worst]).max()):.3g} N)")
 
-    def _batched_objective(self, be: BatchedEnergy, xk, vk, h):
+    def _batched_objective(self, be, xk, vk, h):
         """``evaluate(y, idx, order) -> (phi, r, ab)``: the step's objective relative to
         ``x_k``, its gradient and (``order`` 2) its Hessian in band storage, of the
-        trajectories ``idx`` at unknowns ``y (b, n)`` (``_newton_batched``)."""
+        trajectories ``idx`` at unknowns ``y (b, n)`` (``_newton_batched``); on numpy arrays
+        for a numpy ``be`` (``PlanarLineEnergy``), else on tensors."""
         B = len(xk)
+        arr = (lambda t: t.cpu().numpy()) if getattr(be, "numpy", False) else (lambda t: t)
         cols = be.unknowns
-        xkf = xk.reshape(B, -1)
-        yk, hv = xkf[:, cols], h * vk.reshape(B, -1)[:, cols]
-        node = cols // 3
-        mh, ch, f = (self.mass / h**2)[node], (self.damping / h)[node], self.force.reshape(-1)[cols]
+        xkf = arr(xk.reshape(B, -1))
+        yk, hv = xkf[:, cols], h * arr(vk.reshape(B, -1))[:, cols]
+        terms = be.__dict__.setdefault("objective_terms", {})  # per h, for the rollout
+        if h not in terms:
+            node = cols // 3
+            mh, ch = arr(self.mass / h**2)[node], arr(self.damping / h)[node]
+            terms[h] = (0.5 * mh, 0.5 * ch, arr(self.force.reshape(-1))[cols], mh + ch)
+        hm, hc, f, diag = terms[h]
 
         def evaluate(y, idx, order):
             """``(phi, r, ab)`` of the trajectories ``idx`` at unknowns ``y``."""
-            x = xkf[idx].clone()
+            full = len(idx) == B  # all of them, in order (trajectories only drop out)
+            x = xkf[idx]  # a copy (advanced indexing)
             x[:, cols] = y
             U, dU, ab = be.evaluate(x.reshape(len(idx), -1, 3), idx, order)
-            d = y - yk[idx]
-            a = d - hv[idx]
-            phi = 0.5 * (mh * a * a + ch * d * d).sum(1) - (f * d).sum(1) + U
-            r = None if dU is None else mh * a + ch * d - f + dU
+            d = y - (yk if full else yk[idx])
+            a = d - (hv if full else hv[idx])
+            ma, cd = hm * a, hc * d - f  # m a / 2, c d / 2 - f
+            phi = (ma * a + cd * d).sum(1) + U
+            if dU is None:
+                return phi, None, ab
+            dU += ma
+            dU += ma
+            dU += hc * d
+            dU += cd
             if ab is not None:
-                ab[:, 0] += mh + ch
-            return phi, r, ab
-
+                ab[:, 0] += diag
+            return phi, dU, ab
         return evaluate
-
-    @staticmethod
-    def _search(evaluate, idx, y, dx, r, phi, order: int, halvings: int = 12):
-        """``(y, phi, r, ab)`` at ``y + alpha dx`` per trajectory, ``alpha`` halved from 1
-        until the objective decreases (Armijo), the full step where none does: as
-        ``_line_search``, the trial steps after the first on the energy alone and only for the
-        trajectories still searching."""
-        trial = y + dx
-        phi_t, r_t, ab_t = evaluate(trial, idx, order)
-        slope = (r * dx).sum(1)
-        ok = phi_t <= phi + 1e-4 * slope
-        if bool(ok.all()):
-            return trial, phi_t, r_t, ab_t
-        left = torch.nonzero(~ok)[:, 0]
-        alpha = torch.ones(len(left), dtype=y.dtype, device=y.device)
-        found = torch.zeros(len(left), dtype=torch.bool, device=y.device)
-        for _ in range(halvings - 1):
-            alpha = torch.where(found, alpha, alpha / 2)
-            s = torch.nonzero(~found)[:, 0]
-            j = left[s]
-            p, _, _ = evaluate(y[j] + alpha[s, None] * dx[j], idx[j], 0)
-            found[s] = p <= phi[j] + 1e-4 * alpha[s] * slope[j]
-            if bool(found.all()):
-                break
-        j = left[found]
-        if len(j):
-            a = alpha[found, None]
-            trial[j] = y[j] + a * dx[j]
-            p, rr, aa = evaluate(trial[j], idx[j], order)
-            phi_t[j], r_t[j] = p, rr
-            if ab_t is not None:
-                ab_t[j] = aa
-        return trial, phi_t, r_t, ab_t
 
     # --- statistics and initial stiffness (training split only) ------------------------------
     @torch.no_grad()

@@ -94,6 +94,7 @@ class ImplicitEnergyDissipation(ImplicitEnergy):
     ``ImplicitEnergy``. The mesh's ``damping`` is never read."""
 
     name = "implicit_energy_dissipation"
+    line_numpy = False  # its batched objective adds the learned drag's terms in torch
 
     def __init__(self, mesh: Mesh, config: DissipationConfig, train: Trajectories | None = None):
         super().__init__(mesh, config, None)

@@ -1,0 +1,254 @@
+r"""``BatchedEnergy.evaluate`` in numpy for a planar line mesh solved in its plane (the rod):
+the batched solver's energy, gradient and banded Hessian from the same parameters, for
+rollouts on the CPU (issue 38, item 1).
+
+Why a second evaluation: the rod has 20 edges and 19 hinges, so every torch operation of
+``BatchedEnergy.evaluate`` works on a few hundred numbers and its cost is torch's per-operation
+overhead (about 0.8 ms per evaluation, 2.6 evaluations per interval: 4.4x the solver at h).
+numpy's overhead per operation is several times smaller, and in the plane the geometry is
+smaller too: each node has the two unknowns ``(x, y)``, an edge's stretch derivatives are
+``4``-vectors, a hinge's curvature is the scalar ``kappa = 2 (e x f)_z / (|e| |f| + e . f)``
+(the ``z`` component of ``meshodenet.energy``'s curvature binormal, whose ``x`` and ``y``
+components vanish for a planar rod, at rest and deformed) with ``6``-vectors and ``6 x 6``
+Hessians.
+
+The formulas are those of ``meshodenet.energy._edge_geometry`` and ``_hinge_geometry``
+restricted to the plane, and the MLP's forward-mode pass that of ``BatchedEnergy._mlp``, from
+the stacked weights of the ``BatchedEnergy`` it is built from; ``evaluate`` equals its
+``evaluate`` to round-off (``tests/test_energy_line.py``). ``PlanarLineEnergy.applies`` says
+when it can stand in: a line mesh (edges and rod hinges only), unknowns in the plane only, no
+``clamp_q``, the CPU.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from meshodenet.energy import POWER, BatchedEnergy, _powered
+
+_LN2 = math.log(2.0)
+
+
+
+def _sigmoid(z):
+    """``1 / (1 + e^-z)`` (twice as fast as scipy's ``expit`` on these sizes; ``e^-z``
+    overflows to ``inf`` below ``z = -709``, giving 0: the caller ignores the warning)."""
+    return 1.0 / (1.0 + np.exp(-z))
+
+
+def _softplus(o):
+    """torch's ``softplus`` (``o`` itself above 20)."""
+    return np.where(o > 20, o, np.log1p(np.exp(np.minimum(o, 20))))
+
+
+_BS, _BC = np.array([[1.0, 0], [0, -1]]), np.array([[0.0, 1], [1, 0]])
+#: an edge's ``d2q`` from ``(t_y^2, -t_x t_y, t_x^2) / (l0 |e|)``: ``[[P, -P], [-P, P]]``
+_EDGE_D2 = np.stack([np.kron([[1.0, -1], [-1, 1]], m).reshape(-1) for m in
+                     (np.diag([1.0, 0]), _BC, np.diag([0.0, 1]))])
+_ROT = np.array([-1.0, 1, -1, 1])  # (e_x, e_y) -> (-e_y, e_x) after swapping the pairs
+_EYE3 = np.array([1.0, 0, 1])  # the identity's (xx, xy, yy)
+#: a hinge's ``d2phi`` from ``(s_e, c_e, s_f, c_f)`` (``hinge_geometry``)
+_E, _F = np.array([[-1.0, 1, 0], [1, -1, 0], [0, 0, 0]]), np.array([[0.0, 0, 0], [0, 1, -1],
+                                                                  [0, -1, 1]])
+_HINGE_D2 = np.stack([np.kron(s, b).reshape(-1) for s in (_E, _F) for b in (_BS, _BC)])
+#: a hinge's ``dphi`` on its nodes from ``(g_e, g_f)``
+_HINGE_D1 = np.array([[1.0, 0, -1, 0, 0, 0], [0, 1, 0, -1, 0, 0],
+                      [0, 0, -1, 0, 1, 0], [0, 0, 0, -1, 0, 1]])
+
+
+def edge_geometry(x, nodes, l0, second: bool):
+    """``(q, dq (b, m, 4), parts or None)`` of the stretch ``q = |e| / l0 - 1`` of the edges
+    ``nodes (m, 2)`` at in-plane positions ``x (b, N, 2)``: ``dq = (-t, t) / l0``; ``parts``
+    give ``element_hessian``'s ``alpha dq dq^T + beta d2q`` with ``d2q = [[P, -P], [-P, P]] /
+    (l0 |e|)``, ``P = I - t t^T``."""
+    e = x[:, nodes[:, 1]] - x[:, nodes[:, 0]]
+    le = np.sqrt((e * e).sum(-1))
+    t = e / le[..., None]
+    q = le / l0 - 1.0
+    dq = np.concatenate([-t, t], -1) / l0[:, None]
+    if not second:
+        return q, dq, None
+    tx, ty = t[..., 0], t[..., 1]
+    return q, dq, ("edge", np.stack([tx * tx, tx * ty, ty * ty], -1), 1 / (l0 * le), 1 / l0**2)
+
+
+def hinge_geometry(x, nodes, kap0, second: bool):
+    r"""``(q, dq (b, m, 6), parts or None)`` of ``q = (kappa - kappa_0)^2`` of the rod hinges
+    ``nodes (m, 3)`` at in-plane positions ``x (b, N, 2)``, ``kappa_0 (m,)`` the rest
+    curvature's ``z`` component; ``parts`` give ``element_hessian``.
+
+    ``kappa = 2 w / (|e| |f| + e . f)``, ``w = (e x f)_z``, is ``2 tan(phi / 2)`` of the
+    turning angle ``phi = theta_f - theta_e`` (``theta`` an edge's direction), so ``dkappa =
+    k_1 dphi``, ``d2kappa = k_2 dphi dphi^T + k_1 d2phi`` with ``k_1 = 1 + kappa^2 / 4``,
+    ``k_2 = kappa k_1 / 2``; ``dtheta_e / de = (-e_y, e_x) / |e|^2 = g_e`` and ``d2theta_e /
+    de^2 = H_e = [[s_e, c_e], [c_e, -s_e]]`` with ``s_e = 2 e_x e_y / |e|^4``, ``c_e = (e_y^2
+    - e_x^2) / |e|^4``: on the nodes ``dphi = (g_e, -g_e - g_f, g_f)`` and ``d2phi`` the
+    blocks ``(a, a) = -H_e``, ``(a, b) = H_e``, ``(b, b) = H_f - H_e``, ``(b, c) = -H_f``,
+    ``(c, c) = H_f``. Then ``dq = c_1 dphi``, ``d2q = c_2 dphi dphi^T + c_1 d2phi`` with
+    ``c_1 = 2 delta k_1``, ``c_2 = 2 (k_1^2 + delta k_2)`` (``delta = kappa - kappa_0``):
+    ``meshodenet.energy._hinge_geometry``'s values in the plane."""
+    xe = x[:, nodes].reshape(len(x), len(nodes), 6)
+    ef = xe[..., 2:] - xe[..., :4]                                    # (e, f): (b, m, 4)
+    sq = ef * ef
+    l2 = sq.reshape(*sq.shape[:-1], 2, 2).sum(-1)                     # (|e|^2, |f|^2)
+    e, f = ef[..., :2], ef[..., 2:]
+    w = e[..., 0] * f[..., 1] - e[..., 1] * f[..., 0]
+    kap = 2 * w / (np.sqrt(l2[..., 0] * l2[..., 1]) + (e * f).sum(-1))
+    delta = kap - kap0
+    k1 = 1 + 0.25 * kap * kap
+    l2 = np.repeat(l2, 2, -1)                                         # (b, m, 4)
+    dphi = (ef[..., [1, 0, 3, 2]] * _ROT / l2) @ _HINGE_D1
+    c1 = 2 * delta * k1
+    dq = c1[..., None] * dphi
+    if not second:
+        return delta * delta, dq, None
+    # (s_e, c_e, s_f, c_f) |e|^4 or |f|^4: (2 e_x e_y, e_y^2 - e_x^2, ...)
+    sc = np.stack([2 * ef[..., 0::2] * ef[..., 1::2], sq[..., 1::2] - sq[..., 0::2]], -1) \
+        .reshape(ef.shape) / (l2 * l2)
+    return delta * delta, dq, ("hinge", dphi, c1, 2 * k1 * (k1 + 0.5 * delta * kap), sc)
+
+
+def element_hessian(parts, alpha, beta):
+    """``alpha dq dq^T + beta d2q`` ``(b, m, 2k * 2k)`` of every element from its
+    geometry's ``parts`` and ``alpha, beta (b, m)``; ``d2q`` itself with ``(0, 1)``."""
+    if parts[0] == "edge":  # kron([[1, -1], [-1, 1]], (alpha / l0^2 - beta / (l0 |e|)) t t^T
+        _, tt, inv, il2 = parts  # + beta / (l0 |e|) I)
+        bi = beta * inv
+        return ((alpha * il2 - bi)[..., None] * tt + bi[..., None] * _EYE3) @ _EDGE_D2
+    _, dphi, c1, c2, sc = parts
+    w = alpha * c1 * c1 + beta * c2
+    return ((w[..., None] * dphi)[..., :, None] * dphi[..., None, :]).reshape(*w.shape, 36) \
+        + ((beta * c1)[..., None] * sc) @ _HINGE_D2
+
+
+_GEOMETRY = {"edge": lambda x, nodes, rest, l0, second: edge_geometry(x, nodes, l0, second),
+             "hinge": lambda x, nodes, rest, l0, second: hinge_geometry(x, nodes, rest, second)}
+
+
+class PlanarLineEnergy:
+    """``BatchedEnergy.evaluate`` on numpy arrays for a planar line mesh whose unknowns are
+    in-plane coordinates (``applies``); ``unknowns`` and ``width`` are the ``BatchedEnergy``'s
+    (its banded order), ``numpy = True`` tells the solver which arrays it takes."""
+
+    numpy = True
+
+    def __init__(self, be: BatchedEnergy):
+        if not self.applies(be):
+            raise ValueError("PlanarLineEnergy: needs a line mesh (edges and rod hinges) "
+                             "solved in its plane, without clamp_q, on the CPU")
+        self.kinds, self.counts, self.sigma = be.kinds, be.counts, be.sigma
+        self.unknowns = be.unknowns.numpy()
+        n, self.n, self.width = len(self.unknowns), be.n, be.width
+        self.elems = {}
+        size = max(3 * int(max(int(v[0].max()) for v in be.sys.elems.values()) + 1),
+                   int(self.unknowns.max()) + 1)
+        rank = np.full(size, -1, np.int64)
+        rank[self.unknowns] = np.arange(n)
+        g_to, g_at, h_to, h_at, offset = [], [], [], [], [0, 0]
+        for k in self.kinds:
+            nodes, _, rest, l0 = (t.numpy() for t in be.sys.elems[k])
+            s = rank[3 * nodes[:, :, None] + np.arange(2)].reshape(len(nodes), -1)
+            a, b = (z.reshape(-1) for z in np.broadcast_arrays(s[:, :, None], s[:, None, :]))
+            gi, hi = np.flatnonzero(s.reshape(-1) >= 0), np.flatnonzero((b >= 0) & (a >= b))
+            if len(hi) and int((a - b)[hi].max()) > self.width:
+                raise ValueError("PlanarLineEnergy: the element couples unknowns beyond the "
+                                 "band of its BatchedEnergy")
+            g_at.append(offset[0] + gi)
+            g_to.append(s.reshape(-1)[gi])
+            h_at.append(offset[1] + hi)
+            h_to.append(((a - b) * n + b)[hi])
+            offset[0] += s.size
+            offset[1] += s.shape[1] ** 2 * len(s)
+            self.elems[k] = (nodes, rest[:, 2] if k == "hinge" else rest, l0)
+        self.g_at, self.g_to = np.concatenate(g_at), np.concatenate(g_to)
+        self.h_at, self.h_to = np.concatenate(h_at), np.concatenate(h_to)
+        self.c1, self.w0q = be.c1.numpy(), be.w0q.numpy()
+        self.layers = [(w.numpy(), bias.numpy()) for w, bias in be.layers]
+        self.coef = be.coef.numpy() / _LN2  # with the 1 / ln 2 of g (``_mlp``)
+        self._scatter = {}
+
+    @staticmethod
+    def applies(be: BatchedEnergy) -> bool:
+        """Whether ``be``'s energy can be evaluated here: only edges and rod hinges, every
+        unknown an ``x`` or ``y`` coordinate, no ``clamp_q``, tensors on the CPU."""
+        return (set(be.kinds) <= {"edge", "hinge"} and not be.clamp
+                and be.unknowns.device.type == "cpu" and bool((be.unknowns % 3 < 2).all()))
+
+    def _mlp(self, qhat, idx, order: int):
+        """``(g, g', g'')`` ``ln 2`` of every element ``(T, b, nmax)`` at ``qhat (T, b,
+        nmax)`` (``BatchedEnergy._mlp``: forward mode by hand)."""
+        T, b, nmax = qhat.shape
+        c1 = self.c1 if b == self.c1.shape[2] else self.c1[:, :, idx]
+        z = (c1 + qhat[:, None] * self.w0q[..., None, None]).reshape(T, -1, b * nmax)
+        dz, d2z = self.w0q[..., None], None
+        for w, bias in self.layers:  # SiLU, then the next linear layer
+            # silu(z) = z s, silu' = s + z p, silu'' = p (2 + z - 2 z s), p = s (1 - s)
+            sg = _sigmoid(z)
+            zs = z * sg
+            if order > 0:
+                p = sg - sg * sg
+                a1 = sg + z * p
+                if order > 1:
+                    a2 = p * (z + 2 - 2 * zs) * (dz * dz)
+                    d2z = a2 if d2z is None else a2 + a1 * d2z
+                dz = w @ (a1 * dz)
+                d2z = None if d2z is None else w @ d2z
+            z = w @ zs + bias
+        # g = softplus(o) / ln 2: the 1 / ln 2 is in ``coef``
+        o = z.reshape(T, b, nmax)
+        g = _softplus(o)
+        if order == 0:
+            return g, None, None
+        sg, do = _sigmoid(o), np.broadcast_to(dz, (T, 1, b * nmax)).reshape(T, b, nmax)
+        g1 = sg * do
+        if order == 1:
+            return g, g1, None
+        d2o = 0.0 if d2z is None else d2z.reshape(T, b, nmax)
+        return g, g1, sg * ((1 - sg) * do**2 + d2o)
+
+    def evaluate(self, x: np.ndarray, idx: np.ndarray, order: int):
+        """``(U (b,), dU (b, n) or None, ab (b, width + 1, n) or None)`` at positions ``x
+        (b, N, 3)`` of the trajectories ``idx`` (``BatchedEnergy.evaluate``)."""
+        with np.errstate(over="ignore"):
+            return self._evaluate(x[..., :2], idx, order)
+
+    def _evaluate(self, xy, idx, order):
+        b, n, T = len(xy), self.n, len(self.kinds)
+        full = b == self.coef.shape[1]  # the whole batch, in order (trajectories only drop out)
+        qhat = np.zeros((T, b, max(self.counts)))
+        geo = []
+        for t, k in enumerate(self.kinds):
+            nodes, rest, l0 = self.elems[k]
+            geo.append(_GEOMETRY[k](xy, nodes, rest, l0, order > 1))
+            np.divide(geo[-1][0], self.sigma[t], out=qhat[t, :, :self.counts[t]])
+        gs = self._mlp(qhat, idx, order)
+        U = 0.0
+        grads, hessians = [], []
+        for t, k in enumerate(self.kinds):
+            m, sig = self.counts[t], self.sigma[t]
+            u, d1, d2 = _powered(POWER[k], self.coef[t, :, :m] if full else self.coef[t, idx, :m],
+                                 qhat[t, :, :m], *(None if g is None else g[t, :, :m] for g in gs))
+            U = U + u.sum(1)
+            if not order:
+                continue
+            _, dq, parts = geo[t]
+            d1 /= sig
+            grads.append((d1[..., None] * dq).reshape(b, -1))
+            if order > 1:
+                d2 /= sig**2
+                hessians.append(element_hessian(parts, d2, d1).reshape(b, -1))
+        if not order:
+            return U, None, None
+        if b not in self._scatter:  # bincount's bins of the gradient and the band, per b
+            rows = np.arange(b)[:, None]
+            self._scatter[b] = ((rows * n + self.g_to).reshape(-1),
+                                (rows * (self.width + 1) * n + self.h_to).reshape(-1))
+        gi, hi = self._scatter[b]
+        dU = np.bincount(gi, np.concatenate(grads, 1)[:, self.g_at].reshape(-1), b * n)
+        if order == 1:
+            return U, dU.reshape(b, n), None
+        ab = np.bincount(hi, np.concatenate(hessians, 1)[:, self.h_at].reshape(-1),
+                         b * (self.width + 1) * n)
+        return U, dU.reshape(b, n), ab.reshape(b, self.width + 1, n)
