@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from meshodenet.energy import POWER, BatchedEnergy, _powered
+from meshodenet.energy import POWER, BatchedEnergy
 
 _LN2 = math.log(2.0)
 
@@ -39,8 +39,8 @@ def _sigmoid(z):
 
 
 def _softplus(o):
-    """torch's ``softplus`` (``o`` itself above 20)."""
-    return np.where(o > 20, o, np.log1p(np.exp(np.minimum(o, 20))))
+    """``log(1 + e^o)`` (torch's ``softplus`` gives ``o`` itself above 20, 2e-9 lower)."""
+    return np.logaddexp(0.0, o)
 
 
 _BS, _BC = np.array([[1.0, 0], [0, -1]]), np.array([[0.0, 1], [1, 0]])
@@ -166,7 +166,14 @@ class PlanarLineEnergy:
         self.h_at, self.h_to = np.concatenate(h_at), np.concatenate(h_to)
         self.c1, self.w0q = be.c1.numpy(), be.w0q.numpy()
         self.layers = [(w.numpy(), bias.numpy()) for w, bias in be.layers]
-        self.coef = be.coef.numpy() / _LN2  # with the 1 / ln 2 of g (``_mlp``)
+        # U = c/2 qhat^p g (``energy_element._powered``) for all types at once: c with the
+        # 1 / ln 2 of g (``_mlp``) and the 1 / sigma, 1 / sigma^2 of dq/dx's chain rule
+        coef = be.coef.numpy() / _LN2
+        sig = np.array(self.sigma)[:, None, None]
+        power = np.array([POWER[k] for k in self.kinds], float)[:, None, None]
+        self.coef = (0.5 * coef, coef / sig, coef / sig**2)
+        #: per type (T, 1, 1): p - 1, p / 2, p, p (p - 1) / 2
+        self.powers = (power - 1, power / 2, power, power * (power - 1) / 2)
         self._scatter = {}
 
     @staticmethod
@@ -216,31 +223,31 @@ class PlanarLineEnergy:
 
     def _evaluate(self, xy, idx, order):
         b, n, T = len(xy), self.n, len(self.kinds)
-        full = b == self.coef.shape[1]  # the whole batch, in order (trajectories only drop out)
+        full = b == self.coef[0].shape[1]  # the whole batch, in order (trajectories only drop out)
         qhat = np.zeros((T, b, max(self.counts)))
         geo = []
         for t, k in enumerate(self.kinds):
             nodes, rest, l0 = self.elems[k]
             geo.append(_GEOMETRY[k](xy, nodes, rest, l0, order > 1))
             np.divide(geo[-1][0], self.sigma[t], out=qhat[t, :, :self.counts[t]])
-        gs = self._mlp(qhat, idx, order)
-        U = 0.0
-        grads, hessians = [], []
-        for t, k in enumerate(self.kinds):
-            m, sig = self.counts[t], self.sigma[t]
-            u, d1, d2 = _powered(POWER[k], self.coef[t, :, :m] if full else self.coef[t, idx, :m],
-                                 qhat[t, :, :m], *(None if g is None else g[t, :, :m] for g in gs))
-            U = U + u.sum(1)
-            if not order:
-                continue
-            _, dq, parts = geo[t]
-            d1 /= sig
-            grads.append((d1[..., None] * dq).reshape(b, -1))
-            if order > 1:
-                d2 /= sig**2
-                hessians.append(element_hessian(parts, d2, d1).reshape(b, -1))
+        g, g1, g2 = self._mlp(qhat, idx, order)
+        pm1, p2, p, a0 = self.powers
+        ch, c1, c2 = self.coef if full else (c[:, idx] for c in self.coef)
+        qp1 = qhat**pm1
+        qp = qp1 * qhat
+        U = (ch * qp * g).sum((0, 2))
         if not order:
             return U, None, None
+        hq = 0.5 * qp
+        d1 = c1 * (p2 * qp1 * g + hq * g1)                    # dU/dq, with 1 / sigma
+        d2 = c2 * (a0 * g + p * qp1 * g1 + hq * g2) if order > 1 else None
+        grads, hessians = [], []
+        for t in range(T):
+            m = self.counts[t]
+            _, dq, parts = geo[t]
+            grads.append((d1[t, :, :m, None] * dq).reshape(b, -1))
+            if order > 1:
+                hessians.append(element_hessian(parts, d2[t, :, :m], d1[t, :, :m]).reshape(b, -1))
         if b not in self._scatter:  # bincount's bins of the gradient and the band, per b
             rows = np.arange(b)[:, None]
             self._scatter[b] = ((rows * n + self.g_to).reshape(-1),

@@ -442,13 +442,14 @@ class ImplicitEnergy(TrajectoryModel):
             U, dU, ab = be.evaluate(x.reshape(len(idx), -1, 3), idx, order)
             d = y - (yk if full else yk[idx])
             a = d - (hv if full else hv[idx])
-            ma, cd = hm * a, hc * d - f  # m a / 2, c d / 2 - f
+            ma, hcd = hm * a, hc * d  # m a / 2, c d / 2
+            cd = hcd - f
             phi = (ma * a + cd * d).sum(1) + U
             if dU is None:
                 return phi, None, ab
             dU += ma
             dU += ma
-            dU += hc * d
+            dU += hcd
             dU += cd
             if ab is not None:
                 ab[:, 0] += diag
