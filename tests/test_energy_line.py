@@ -196,3 +196,40 @@ def test_applies_needs_a_planar_line_or_edge_energy():
     assert not el.PlanarLineEnergy.applies(be)
     with pytest.raises(ValueError, match="plane"):
         el.PlanarLineEnergy(be)
+
+
+def test_newton_starts_again_without_the_predictor_where_it_fails(monkeypatch):
+    """A Newton solve that does not converge from the predicted first guess is solved again
+    from ``x_k + h v_k`` (the learned-dissipation model's rod rollout once failed so): the
+    rollout goes through and equals the one without the predictor."""
+    from meshodenet.implicit import NewtonError
+
+    arrays = rod_arrays(T=12, dt=0.02)
+    model, tr = _model(arrays)
+    args = (tr.pos[:, 0], tr.vel[:, 0], tr.youngs, tr.t)
+    model.newton_predictor = False
+    with torch.no_grad():
+        plain, _ = model.rollout(*args)
+    model.newton_predictor = True
+    real, starts = ImplicitEnergy._iterate, []
+
+    def failing_when_predicted(self, evaluate, y, h, where):
+        predicted = getattr(failing_when_predicted, "guess", None) is not None
+        starts.append(predicted)
+        if predicted:
+            failing_when_predicted.guess = None
+            raise NewtonError("not from the predicted guess")
+        return real(self, evaluate, y, h, where)
+
+    def newton(self, be, xk, vk, h, where):
+        if getattr(be, "last_correction", None) is not None:
+            failing_when_predicted.guess = True
+        return real_newton(self, be, xk, vk, h, where)
+
+    real_newton = ImplicitEnergy._newton_batched
+    monkeypatch.setattr(ImplicitEnergy, "_iterate", failing_when_predicted)
+    monkeypatch.setattr(ImplicitEnergy, "_newton_batched", newton)
+    with torch.no_grad():
+        again, _ = model.rollout(*args)
+    assert sum(starts) == len(tr.t) - 2  # every interval after the first tried the prediction
+    assert torch.allclose(again, plain, rtol=0, atol=1e-12)

@@ -365,7 +365,9 @@ class ImplicitEnergy(TrajectoryModel):
         energies evaluated together and converged trajectories dropping out. Works on the
         unknowns ``be.unknowns`` (banded order), the objective relative to ``x_k`` (the
         constant ``f . x_k`` and the fixed coordinates left out); the iteration on numpy
-        arrays (the energy's evaluation in torch for a ``BatchedEnergy``)."""
+        arrays (the energy's evaluation in torch for a ``BatchedEnergy``). The first guess
+        ``x_k + h v_k`` plus the previous interval's correction (``newton_predictor``); where
+        Newton does not converge from it, it starts again from ``x_k + h v_k``."""
         B = len(xk)
         evaluate = self._batched_objective(be, xk, vk, h)
         if not getattr(be, "numpy", False):
@@ -374,13 +376,27 @@ class ImplicitEnergy(TrajectoryModel):
             be.cols = be.unknowns.cpu().numpy() if torch.is_tensor(be.unknowns) else be.unknowns
         cols = be.cols
         xkf = xk.reshape(B, -1).cpu().numpy()
+        guess = xkf[:, cols] + h * vk.reshape(B, -1).cpu().numpy()[:, cols]
+        last = getattr(be, "last_correction", None) if self.newton_predictor else None
+        out = None
+        if last is not None and last[0].shape == guess.shape:  # the previous correction
+            try:
+                out = self._iterate(evaluate, guess + (h / last[1]) ** 2 * last[0], h, where)
+            except NewtonError:
+                out = None
+        if out is None:
+            out = self._iterate(evaluate, guess, h, where)
+        be.last_correction = (out - guess, h)
+        xn = xkf.copy()  # xkf shares xk's memory
+        xn[:, cols] = out
+        return torch.from_numpy(xn).to(xk.device).reshape(xk.shape)
+
+    def _iterate(self, evaluate, y, h, where: str) -> np.ndarray:
+        """``_newton_batched``'s Newton iterations from the unknowns ``y (B, n)``: the
+        converged unknowns, or ``NewtonError``."""
+        B = len(y)
         tol = self.config.newton_rtol * self.length
         idx = np.arange(B)
-        y = xkf[:, cols] + h * vk.reshape(B, -1).cpu().numpy()[:, cols]
-        guess = y.copy()
-        last = getattr(be, "last_correction", None) if self.newton_predictor else None
-        if last is not None and last[0].shape == y.shape:  # the previous interval's correction
-            y += (h / last[1]) ** 2 * last[0]
         phi, r, ab = evaluate(y, idx, 2)
         facs = [la.band_factor(a) for a in ab]
         prev = np.full(B, math.inf)
@@ -391,10 +407,7 @@ class ImplicitEnergy(TrajectoryModel):
             conv = step <= tol
             if conv.all():  # the whole (remaining) batch
                 out[idx] = y + dx
-                be.last_correction = (out - guess, h)
-                xn = xkf.copy()  # xkf shares xk's memory
-                xn[:, cols] = out
-                return torch.from_numpy(xn).to(xk.device).reshape(xk.shape)
+                return out
             if done == self.config.newton_max_iter or not np.isfinite(step).all():
                 break
             if conv.any():
