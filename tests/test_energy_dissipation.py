@@ -179,7 +179,9 @@ def test_the_mesh_drag_is_never_read():
     with torch.no_grad():
         a, _ = model.rollout(tr.pos[:2, 0], tr.vel[:2, 0], tr.youngs[:2], tr.t)
         b, _ = again.rollout(tr.pos[:2, 0], tr.vel[:2, 0], tr.youngs[:2], tr.t)
-    assert torch.equal(a, b) and float(model.damping.abs().max()) == 0
+    # equal to round-off (LAPACK's banded kernels may round the last bit differently with
+    # the arrays' alignment; the other drag would move the rod by millimetres)
+    assert torch.allclose(a, b, rtol=0, atol=1e-13) and float(model.damping.abs().max()) == 0
 
 
 def test_least_squares_recovers_a_known_drag_of_a_free_body():
