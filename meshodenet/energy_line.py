@@ -1,23 +1,25 @@
-r"""``BatchedEnergy.evaluate`` in numpy for a planar line mesh solved in its plane (the rod):
-the batched solver's energy, gradient and banded Hessian from the same parameters, for
-rollouts on the CPU (issue 38, item 1).
+r"""``BatchedEnergy.evaluate`` in numpy for a planar mesh of edges and rod hinges solved in its
+plane (the rod; the in-plane cantilever, whose in-plane solve has no bending term): the
+batched solver's energy, gradient and banded Hessian from the same parameters, for rollouts
+on the CPU (issue 38, item 1).
 
 Why a second evaluation: the rod has 20 edges and 19 hinges, so every torch operation of
 ``BatchedEnergy.evaluate`` works on a few hundred numbers and its cost is torch's per-operation
 overhead (about 0.8 ms per evaluation, 2.6 evaluations per interval: 4.4x the solver at h).
-numpy's overhead per operation is several times smaller, and in the plane the geometry is
+numpy's overhead per operation is several times smaller (the plate's larger arrays gain too:
+numpy's MLP pass beats torch's fused kernels there), and in the plane the geometry is
 smaller too: each node has the two unknowns ``(x, y)``, an edge's stretch derivatives are
 ``4``-vectors, a hinge's curvature is the scalar ``kappa = 2 (e x f)_z / (|e| |f| + e . f)``
 (the ``z`` component of ``meshodenet.energy``'s curvature binormal, whose ``x`` and ``y``
 components vanish for a planar rod, at rest and deformed) with ``6``-vectors and ``6 x 6``
-Hessians.
+Hessians, taken from the turning angle (``hinge_geometry``).
 
 The formulas are those of ``meshodenet.energy._edge_geometry`` and ``_hinge_geometry``
 restricted to the plane, and the MLP's forward-mode pass that of ``BatchedEnergy._mlp``, from
 the stacked weights of the ``BatchedEnergy`` it is built from; ``evaluate`` equals its
 ``evaluate`` to round-off (``tests/test_energy_line.py``). ``PlanarLineEnergy.applies`` says
-when it can stand in: a line mesh (edges and rod hinges only), unknowns in the plane only, no
-``clamp_q``, the CPU.
+when it can stand in: edges and rod hinges only, unknowns in the plane only, no ``clamp_q``,
+the CPU.
 """
 
 from __future__ import annotations
@@ -128,8 +130,8 @@ _GEOMETRY = {"edge": lambda x, nodes, rest, l0, second: edge_geometry(x, nodes, 
 
 
 class PlanarLineEnergy:
-    """``BatchedEnergy.evaluate`` on numpy arrays for a planar line mesh whose unknowns are
-    in-plane coordinates (``applies``); ``unknowns`` and ``width`` are the ``BatchedEnergy``'s
+    """``BatchedEnergy.evaluate`` on numpy arrays for a planar mesh of edges and rod hinges
+    whose unknowns are in-plane coordinates (``applies``); ``unknowns`` and ``width`` are the ``BatchedEnergy``'s
     (its banded order), ``numpy = True`` tells the solver which arrays it takes."""
 
     numpy = True
