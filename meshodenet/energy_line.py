@@ -131,8 +131,9 @@ _GEOMETRY = {"edge": lambda x, nodes, rest, l0, second: edge_geometry(x, nodes, 
 
 class PlanarLineEnergy:
     """``BatchedEnergy.evaluate`` on numpy arrays for a planar mesh of edges and rod hinges
-    whose unknowns are in-plane coordinates (``applies``); ``unknowns`` and ``width`` are the ``BatchedEnergy``'s
-    (its banded order), ``numpy = True`` tells the solver which arrays it takes."""
+    whose unknowns are in-plane coordinates (``applies``); ``unknowns`` and ``width`` are the
+    ``BatchedEnergy``'s (its banded order), ``numpy = True`` tells the solver which arrays it
+    takes."""
 
     numpy = True
 
