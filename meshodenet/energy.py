@@ -466,6 +466,7 @@ class BatchedEnergy:
         rank = np.full(n + 1, -1, np.int64)  # old index -> new position; rank[-1] = -1
         rank[perm] = np.arange(n)
         self.unknowns = act[torch.as_tensor(perm, device=dev)]
+        self.cols = self.unknowns.cpu().numpy()  # the same, for the solver's numpy iteration
         self.n, self.width, self.maps = n, 0, {}
         for k, d in dofs.items():
             s = torch.as_tensor(rank, device=dev)[d]                     # (n_e, 3k)

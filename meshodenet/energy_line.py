@@ -33,6 +33,10 @@ from meshodenet.energy import POWER, BatchedEnergy
 _LN2 = math.log(2.0)
 
 
+def _in_plane(i):
+    """An element's local coordinate ``3 node + axis`` as ``2 node + axis`` (``axis < 2``)."""
+    return 2 * (i // 3) + i % 3
+
 
 def _sigmoid(z):
     """``1 / (1 + e^-z)`` (twice as fast as scipy's ``expit`` on these sizes; ``e^-z``
@@ -46,7 +50,7 @@ def _softplus(o):
 
 
 _BS, _BC = np.array([[1.0, 0], [0, -1]]), np.array([[0.0, 1], [1, 0]])
-#: an edge's ``d2q`` from ``(t_y^2, -t_x t_y, t_x^2) / (l0 |e|)``: ``[[P, -P], [-P, P]]``
+#: an edge's ``kron([[1, -1], [-1, 1]], M)`` from the entries ``(xx, xy, yy)`` of ``M`` (2 x 2)
 _EDGE_D2 = np.stack([np.kron([[1.0, -1], [-1, 1]], m).reshape(-1) for m in
                      (np.diag([1.0, 0]), _BC, np.diag([0.0, 1]))])
 _ROT = np.array([-1.0, 1, -1, 1])  # (e_x, e_y) -> (-e_y, e_x) after swapping the pairs
@@ -139,31 +143,26 @@ class PlanarLineEnergy:
 
     def __init__(self, be: BatchedEnergy):
         if not self.applies(be):
-            raise ValueError("PlanarLineEnergy: needs a line mesh (edges and rod hinges) "
+            raise ValueError("PlanarLineEnergy: needs a planar mesh of edges and rod hinges "
                              "solved in its plane, without clamp_q, on the CPU")
         self.kinds, self.counts, self.sigma = be.kinds, be.counts, be.sigma
-        self.unknowns = be.unknowns.numpy()
-        n, self.n, self.width = len(self.unknowns), be.n, be.width
+        self.unknowns = self.cols = be.cols
+        self.n, self.width = be.n, be.width
         self.elems = {}
-        size = max(3 * int(max(int(v[0].max()) for v in be.sys.elems.values()) + 1),
-                   int(self.unknowns.max()) + 1)
-        rank = np.full(size, -1, np.int64)
-        rank[self.unknowns] = np.arange(n)
+        # ``be.maps``' gradient and band entries, from its elements' 3k local coordinates to
+        # the 2k in-plane ones here (every unknown is in-plane: ``applies``)
         g_to, g_at, h_to, h_at, offset = [], [], [], [], [0, 0]
         for k in self.kinds:
             nodes, _, rest, l0 = (t.numpy() for t in be.sys.elems[k])
-            s = rank[3 * nodes[:, :, None] + np.arange(2)].reshape(len(nodes), -1)
-            a, b = (z.reshape(-1) for z in np.broadcast_arrays(s[:, :, None], s[:, None, :]))
-            gi, hi = np.flatnonzero(s.reshape(-1) >= 0), np.flatnonzero((b >= 0) & (a >= b))
-            if len(hi) and int((a - b)[hi].max()) > self.width:
-                raise ValueError("PlanarLineEnergy: the element couples unknowns beyond the "
-                                 "band of its BatchedEnergy")
-            g_at.append(offset[0] + gi)
-            g_to.append(s.reshape(-1)[gi])
-            h_at.append(offset[1] + hi)
-            h_to.append(((a - b) * n + b)[hi])
-            offset[0] += s.size
-            offset[1] += s.shape[1] ** 2 * len(s)
+            k3, k2 = 3 * nodes.shape[1], 2 * nodes.shape[1]
+            gi, gt, hi, ht = (m.cpu().numpy() for m in be.maps[k])
+            rc = hi % k3**2
+            g_at.append(offset[0] + gi // k3 * k2 + _in_plane(gi % k3))
+            h_at.append(offset[1] + hi // k3**2 * k2**2 + _in_plane(rc // k3) * k2 + _in_plane(rc % k3))
+            g_to.append(gt)
+            h_to.append(ht)
+            offset[0] += len(nodes) * k2
+            offset[1] += len(nodes) * k2**2
             self.elems[k] = (nodes, rest[:, 2] if k == "hinge" else rest, l0)
         self.g_at, self.g_to = np.concatenate(g_at), np.concatenate(g_to)
         self.h_at, self.h_to = np.concatenate(h_at), np.concatenate(h_to)

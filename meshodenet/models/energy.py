@@ -372,8 +372,6 @@ class ImplicitEnergy(TrajectoryModel):
         evaluate = self._batched_objective(be, xk, vk, h)
         if not getattr(be, "numpy", False):
             evaluate = la.on_numpy(evaluate, xk.device)
-        if "cols" not in be.__dict__:
-            be.cols = be.unknowns.cpu().numpy() if torch.is_tensor(be.unknowns) else be.unknowns
         cols = be.cols
         xkf = xk.reshape(B, -1).cpu().numpy()
         guess = xkf[:, cols] + h * vk.reshape(B, -1).cpu().numpy()[:, cols]
