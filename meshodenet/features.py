@@ -111,6 +111,29 @@ def check_acc_scale(owner: str, value) -> None:
                          f"got {value!r}")
 
 
+#: How the normalisers' statistics are taken (issue 37, item 2; docs/AB.md "The out-of-plane
+#: channel"): ``ours`` (``Normalizer.set_stats``: a constant input is scaled by its mean, a
+#: nearly constant vector component is floored at ``VECTOR_FLOOR`` times its vector's largest
+#: std, a constant output has std 0, so a planar case stays exactly planar), or ``authors`` as
+#: the authors' code: the unbiased std of every feature clamped at ``AUTHORS_STD_MIN`` in their
+#: units (metres; velocities per their ODE's time unit of 0.1 per frame; the modulus in MPa),
+#: the node-type one-hot not normalised, and the output scale (``acc_scale="velocity"``, which
+#: it needs) the velocity's clamped std, not 0. On the in-plane plate that leaves the
+#: out-of-plane direction alive: a decoded z output moves the nodes by at most ~1e-7 m, which
+#: the loss cannot see, but reaches the encoders as a normalised z velocity and z edge vector of
+#: order 1 to 30 over a rollout, a hidden state the network can use.
+NORMALIZERS = ("ours", "authors")
+AUTHORS_STD_MIN = 1e-8
+AUTHORS_FRAME_TIME = 0.1  # their ODE's time per frame
+AUTHORS_YOUNGS_UNIT = 1e6  # their modulus feature is Y / 1e6
+
+
+def check_normalizer(owner: str, value) -> None:
+    if value not in NORMALIZERS:
+        raise ValueError(f"{owner}.normalizer must be one of {', '.join(NORMALIZERS)}; "
+                         f"got {value!r}")
+
+
 def check_rest_position(owner: str, value) -> None:
     if not isinstance(value, bool):
         raise ValueError(f"{owner}.rest_position must be a bool, got {value!r}")
@@ -206,6 +229,11 @@ class Normalizer(nn.Module):
         self.mean.copy_(mean)
         self.std.copy_(std)
 
+    def set_raw(self, mean: torch.Tensor, std: torch.Tensor) -> None:
+        """Take ``mean`` and ``std`` as they are (no floor; ``normalizer="authors"``)."""
+        self.mean.copy_(mean.double())
+        self.std.copy_(std.double())
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return (x - self.mean.to(x.dtype)) / self.std.to(x.dtype)
 
@@ -229,27 +257,35 @@ class _Moments:
         self.s = self.s + a.sum(0)
         self.s2 = self.s2 + (a * a).sum(0)
 
-    def result(self):
+    def result(self, unbiased: bool = False):
         mean = self.s / max(self.n, 1)
         var = (self.s2 / max(self.n, 1) - mean * mean).clamp_min(0.0)
+        if unbiased:
+            var = var * self.n / max(self.n - 1, 1)
         return mean, var.sqrt()
 
 
 class FeatureStats(nn.Module):
     """Normalisers of node features, edge features and accelerations (targets of the
     decoder, from finite differences of the stored velocities over free nodes, or with
-    ``acc_scale="velocity"`` the authors' scale: ``ACC_SCALES``).
+    ``acc_scale="velocity"`` the authors' scale: ``ACC_SCALES``), taken as ``normalizer`` says
+    (``NORMALIZERS``).
 
     Build it empty (``FeatureStats(kind)``) and either ``compute`` from training trajectories or
     load a ``state_dict``.
     """
 
     def __init__(self, kind: str, youngs_feature: str = "linear", rest_position: bool = False,
-                 acc_scale: str = "acceleration", layout: str = "ours"):
+                 acc_scale: str = "acceleration", layout: str = "ours", normalizer: str = "ours"):
         super().__init__()
         check_youngs_feature("FeatureStats", youngs_feature)
         check_acc_scale("FeatureStats", acc_scale)
         check_layout("FeatureStats", layout)
+        check_normalizer("FeatureStats", normalizer)
+        if normalizer == "authors" and acc_scale != "velocity":
+            raise ValueError("FeatureStats: normalizer='authors' needs acc_scale='velocity' (the "
+                             f"authors' output scale), got {acc_scale!r}")
+        self.normalizer = normalizer
         self.kind = kind
         self.acc_scale = acc_scale
         self.layout = layout
@@ -286,17 +322,39 @@ class FeatureStats(nn.Module):
                                 dynamic_edge_features(x, batch, self.layout)], -1))
             if self.acc_scale == "acceleration":  # (``velocity``: from the node moments)
                 acc.add(((train.vel[b, 1:] - train.vel[b, :-1]) / dt)[:, free])
+        frame_dt = float(dt.mean())
+        if self.normalizer == "authors":
+            self._authors_stats(node, edge, frame_dt)
+            return self
         node_mean, node_std = node.result()
         if self.acc_scale == "velocity":  # ACC_SCALES: the raw std (0 for a planar case's z)
             s = n_static(self.kind, self.rest_position)
             acc_stats = (torch.zeros(3, dtype=torch.float64),
-                         node_std[s:s + 3] / (10 * float(dt.mean())))
+                         node_std[s:s + 3] / (10 * frame_dt))
         else:
             acc_stats = acc.result()
         self.node.set_stats(node_mean, node_std)
         self.edge.set_stats(*edge.result())
         self.acc.set_stats(*acc_stats)
         return self
+
+    def _authors_stats(self, node: _Moments, edge: _Moments, frame_dt: float) -> None:
+        """``normalizer="authors"`` (``NORMALIZERS``): unbiased std clamped at
+        ``AUTHORS_STD_MIN`` in the authors' units, the one-hot as it is, and the output
+        scale the velocity's clamped std per their time unit."""
+        s = n_static(self.kind, self.rest_position)
+        to_theirs = frame_dt / AUTHORS_FRAME_TIME  # m/s -> m per their time unit
+        mean, std = node.result(unbiased=True)
+        unit = torch.ones_like(std)
+        unit[0] = AUTHORS_YOUNGS_UNIT if self.youngs_feature == "linear" else 1.0
+        unit[s:s + 3] = 1 / to_theirs
+        std = torch.maximum(std, AUTHORS_STD_MIN * unit)
+        if self.kind != "line":  # the one-hot, not normalised
+            mean[1:1 + N_NODE_TYPES], std[1:1 + N_NODE_TYPES] = 0.0, 1.0
+        self.node.set_raw(mean, std)
+        e_mean, e_std = edge.result(unbiased=True)
+        self.edge.set_raw(e_mean, e_std.clamp_min(AUTHORS_STD_MIN))
+        self.acc.set_raw(torch.zeros(3, dtype=torch.float64), std[s:s + 3] / (10 * frame_dt))
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
 """MeshODENet's switches to the authors' code's conventions (issue 37's A/B, docs/AB.md):
 the decoder's output de-normalised with the velocity's scale (``acc_scale="velocity"``), the
-root-mean-square loss (``loss="rms"``) and their feature layout (``layout="authors"``; the fast
-path against the reference with it: tests/test_fast.py)."""
+root-mean-square loss (``loss="rms"``), their feature layout (``layout="authors"``) and their
+normalisation (``normalizer="authors"``; the fast path against the reference with them:
+tests/test_fast.py)."""
 
 from __future__ import annotations
 
@@ -109,10 +110,57 @@ def test_authors_layout_features():
     torch.testing.assert_close(n_edge, ours.field_context(tr.youngs).inputs(x, v)[1])
 
 
+def in_plane_strip(**kw):
+    """``strip_arrays`` moving in its own plane: its sag along y instead of z (z exactly 0),
+    like ``plate_cantilever``."""
+    a = strip_arrays(**kw)
+    for key in ("pos", "vel"):
+        a[key][..., 1] += a[key][..., 2]
+        a[key][..., 2] = 0.0
+    a["force"] = a["force"][:, [0, 2, 1]]
+    return a
+
+
+def test_authors_normalizer_statistics_and_the_live_out_of_plane_direction():
+    """``normalizer="authors"``: the unbiased std of every feature clamped at 1e-8 in the
+    authors' units (velocities per their time unit of 0.1 per frame, so 1e-8 * 0.1 / dt in
+    m/s), the one-hot as it is, the output scale the clamped velocity std per 10 intervals;
+    on an in-plane strip its rollout leaves the plane by a hair (the decoder's z output
+    times that scale) while ``ours`` stays exactly planar."""
+    arrays = in_plane_strip(B=2, T=6)
+    mesh, tr = Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays, torch.float64)
+    cfg = dict(hidden=8, layout="authors", acc_scale="velocity", loss="rms")
+    torch.manual_seed(0)
+    model = MeshODENet(mesh, MeshODENetConfig(**cfg, normalizer="authors"), tr).double()
+    dt = float(np.mean(np.diff(arrays["t"])))
+    s = model.stats
+    v = torch.as_tensor(arrays["vel"]).reshape(-1, 3)
+    want_v = v.std(0, correction=1).clamp_min(1e-8 * 0.1 / dt)
+    torch.testing.assert_close(s.node.std[3:], want_v, rtol=1e-10, atol=0)
+    assert s.node.std[5] == pytest.approx(1e-8 * 0.1 / dt, rel=1e-12)  # z: the clamp
+    assert s.node.mean[1:3].tolist() == [0.0, 0.0] and s.node.std[1:3].tolist() == [1.0, 1.0]
+    y = torch.as_tensor(arrays["youngs"]).repeat_interleave(mesh.n_nodes * 6)  # every frame
+    assert float(s.node.std[0]) == pytest.approx(float(y.std(correction=1)), rel=1e-10)
+    assert float(s.edge.std[3]) == 1e-8 and float(s.edge.std[7]) == 1e-8  # rest and current z
+    torch.testing.assert_close(s.acc.std, want_v / (10 * dt), rtol=1e-12, atol=0)
+    assert torch.equal(s.acc.mean, torch.zeros(3, dtype=torch.float64))
+    ours = MeshODENet(mesh, MeshODENetConfig(**cfg), tr).double()
+    ours.gnn.load_state_dict(model.gnn.state_dict())
+    x0, v0, t = tr.pos[:, 0], tr.vel[:, 0], tr.t - tr.t[0]
+    with torch.no_grad():
+        xa, _ = model.rollout(x0, v0, tr.youngs, t)
+        xo, _ = ours.rollout(x0, v0, tr.youngs, t)
+    assert not xo[..., 2].any()
+    z = xa[..., 2].abs().max()
+    assert 0 < z < 1e-8  # out of the plane, by far less than the loss can see
+    torch.testing.assert_close(xa[..., :2], xo[..., :2], rtol=0, atol=1e-3)
+
+
 @pytest.mark.parametrize("fields, name", [
     (dict(acc_scale="velocities"), "acc_scale"), (dict(loss="l1"), "loss"),
     (dict(loss="rms", frame_weight=0.5), "frame_weight"), (dict(layout="theirs"), "layout"),
-    (dict(layout="authors", mlp_hidden_layers=0), "mlp_hidden_layers")])
+    (dict(layout="authors", mlp_hidden_layers=0), "mlp_hidden_layers"),
+    (dict(normalizer="theirs"), "normalizer"), (dict(normalizer="authors"), "normalizer")])
 def test_bad_settings_name_the_field(fields, name):
     with pytest.raises(ValueError, match=f"MeshODENetConfig.{name}"):
         MeshODENetConfig(**fields)

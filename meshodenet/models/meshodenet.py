@@ -32,6 +32,7 @@ from meshodenet.features import (
     authors_nodes,
     check_acc_scale,
     check_layout,
+    check_normalizer,
     check_rest_position,
     check_youngs_feature,
     graph_context,
@@ -103,8 +104,10 @@ class MeshODENetConfig:
       code); ``loss``: ``mse`` (``training_loss``) or ``rms``, the mean over windows of the
       root of each window's mean square error relative to standing still (the authors' loss,
       up to a constant, is its value for one whole trajectory); ``layout``: the features'
-      (``meshodenet.features.LAYOUTS``: ``ours``, or ``authors``, the authors' code's). Issue
-      37's A/B: docs/AB.md.
+      (``meshodenet.features.LAYOUTS``: ``ours``, or ``authors``, the authors' code's);
+      ``normalizer``: how the statistics are taken (``meshodenet.features.NORMALIZERS``:
+      ``ours``, or ``authors``, whose clamped std leaves a planar case's out-of-plane direction
+      alive). Issue 37's A/B: docs/AB.md.
     - ``engine``, ``message_passing``: how the network is evaluated
       (``meshodenet.models.common.ENGINES``, ``MESSAGE_PASSING``); not the model itself.
 
@@ -132,6 +135,7 @@ class MeshODENetConfig:
     acc_scale: str = "acceleration"
     loss: str = "mse"
     layout: str = "ours"
+    normalizer: str = "ours"
     engine: str = "fast"
     message_passing: str = "pyg"
 
@@ -144,6 +148,10 @@ class MeshODENetConfig:
         check_youngs_feature("MeshODENetConfig", self.youngs_feature)
         check_acc_scale("MeshODENetConfig", self.acc_scale)
         check_layout("MeshODENetConfig", self.layout)
+        check_normalizer("MeshODENetConfig", self.normalizer)
+        if self.normalizer == "authors" and self.acc_scale != "velocity":
+            raise ValueError("MeshODENetConfig.normalizer='authors' needs acc_scale='velocity' "
+                             f"(the authors' output scale), got {self.acc_scale!r}")
         check_choice(self, "loss", LOSSES)
         if self.loss == "rms" and self.frame_weight:
             raise ValueError(f"MeshODENetConfig.frame_weight={self.frame_weight!r} has no "
@@ -240,7 +248,7 @@ class MeshODENet(TrajectoryModel):
         self.topology = GraphTopology(mesh, hinges)
         self.kind = mesh.kind
         self.stats = FeatureStats(self.kind, config.youngs_feature, config.rest_position,
-                                  config.acc_scale, config.layout)
+                                  config.acc_scale, config.layout, config.normalizer)
         self.epoch = 0
         self._loss_scales: dict = {}  # no-motion losses (_frame_scales, _release_loss)
         if train is not None:

@@ -1,4 +1,4 @@
-"""``python -m benchmarks.engine.ab {train,merge}``: the A/B of the authors' MeshODENet code
+"""``python -m benchmarks.engine.ab {train,merge,equiv}``: the A/B of the authors' MeshODENet code
 against our ``paper`` preset (docs/AB.md). Bad input exits 2 with one line naming it; an
 interruption (Ctrl-C, SIGTERM) exits 130 keeping every finished epoch."""
 
@@ -48,6 +48,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="another --code ours run directory, trained with --set settings "
                         "(a bisection step; its code reads ours+F=V); repeatable")
     m.set_defaults(func=_merge)
+    e = sub.add_parser("equiv", help="the same weights in both codes: field, loss, gradient, steps")
+    e.add_argument("--case", required=True)
+    e.add_argument("--authors-repo", required=True, type=Path,
+                   help="checkout of github.com/leixinma/MeshODENet (RUNS THEIR CODE)")
+    e.add_argument("--data-dir", default=None, help="the store (default $MESHBENCH_DATA or ./data)")
+    e.add_argument("--set", dest="overrides", action="append", default=[], metavar="GROUP.FIELD=VALUE",
+                   help="override a setting of our paper preset (model.layout=authors needed)")
+    e.add_argument("--frames", type=int, default=None,
+                   help="first frames of every trajectory (default: the authors' rule, at most 400)")
+    e.add_argument("--trajectory", type=int, default=0, help="training trajectory compared (0)")
+    e.add_argument("--steps", type=int, default=0,
+                   help="optimizer steps of both, on the first trajectories in file order (0)")
+    e.add_argument("--seed", type=int, default=42, help="their seed, which builds the weights")
+    e.add_argument("--out", type=Path, default=None, help="also write the rows to this CSV")
+    e.set_defaults(func=_equiv)
     return p
 
 
@@ -92,6 +107,18 @@ def _merge(args) -> int:
     path = merge(args.case, args.authors, args.ours, args.results, args.authors_repo,
                  args.allow_smoke, args.name, args.variant)
     print(f"wrote {path} and {path.parent / 'figures' / (path.stem + '.png')}")
+    return 0
+
+
+def _equiv(args) -> int:
+    from benchmarks.engine.ab import equiv
+    from benchmarks.engine.ab.authors import check_checkout
+
+    check_checkout(args.authors_repo)
+    equiv.run(args.case, args.authors_repo, args.data_dir, args.overrides, args.frames,
+              args.trajectory, args.steps, args.seed, args.out)
+    if args.out is not None:
+        print(f"wrote {args.out}")
     return 0
 
 
