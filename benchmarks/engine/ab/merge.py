@@ -24,11 +24,15 @@ PUBLISHED_CASE = "plate_cantilever"
 #: Our model with the authors' code's conventions: the ``paper`` preset on triangle meshes
 #: (``meshodenet.models.meshodenet.PAPER``).
 AUTHORS_CONVENTIONS = "ours+acc_scale=velocity+loss=rms+layout=authors"
+#: ... and their normaliser (their out-of-plane channel): their code, to float32 round-off.
+AUTHORS_CODE = AUTHORS_CONVENTIONS + "+normalizer=authors"
 #: Output names: ``plate_ab.csv``, ``rod_ab.csv`` (other cases: their id).
 NAMES = {"plate_cantilever": "plate", "rod_falling": "rod"}
 CURVES = {"authors": ("their code, our data", "C3", "-"),
           "ours": ("ours, our conventions (rods' paper preset)", "C0", "-"),
           AUTHORS_CONVENTIONS: ("ours, their conventions (plates' paper preset)", "C2", "-"),
+          AUTHORS_CODE: ("ours, their conventions and normaliser (their code's gradients)", "C9",
+                         "-"),
           "authors_published": ("their code, their data (published log)", "C7", "--")}
 
 
@@ -138,10 +142,10 @@ def figure(rows: list, path: Path, case: str, data: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax_l, ax_r) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (ax_l, ax_r) = plt.subplots(1, 2, figsize=(11, 6.2))
     curves = dict(CURVES)
     more = sorted({r["code"] for r in rows} - set(CURVES) - {"standing_still"})
-    free = [c for c in (f"C{i}" for i in range(10)) if c not in ("C0", "C2", "C3", "C7")]
+    free = [c for c in (f"C{i}" for i in range(10)) if c not in ("C0", "C2", "C3", "C7", "C9")]
     for i, code in enumerate(more):  # bisection runs: ours with --set settings
         curves[code] = (code, free[i % len(free)], "-")
     for code, (label, color, style) in curves.items():
@@ -171,8 +175,10 @@ def figure(rows: list, path: Path, case: str, data: dict) -> None:
                    f"{data['frames']} frames, {data['nodes']} nodes")
     for ax in (ax_l, ax_r):
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.tight_layout()
+    handles, labels = ax_l.get_legend_handles_labels()  # one legend below both panels
+    seen = dict(zip(labels, handles))
+    fig.legend(seen.values(), seen.keys(), loc="lower center", ncol=2, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.05 + 0.032 * ((len(seen) + 1) // 2), 1, 1))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
