@@ -128,10 +128,14 @@ AUTHORS_FRAME_TIME = 0.1  # their ODE's time per frame
 AUTHORS_YOUNGS_UNIT = 1e6  # their modulus feature is Y / 1e6
 
 
-def check_normalizer(owner: str, value) -> None:
+def check_normalizer(owner: str, value, acc_scale: str) -> None:
+    """``value`` one of ``NORMALIZERS``; ``authors`` only with the authors' output scale."""
     if value not in NORMALIZERS:
         raise ValueError(f"{owner}.normalizer must be one of {', '.join(NORMALIZERS)}; "
                          f"got {value!r}")
+    if value == "authors" and acc_scale != "velocity":
+        raise ValueError(f"{owner}.normalizer='authors' needs acc_scale='velocity' (the "
+                         f"authors' output scale), got {acc_scale!r}")
 
 
 def check_rest_position(owner: str, value) -> None:
@@ -281,10 +285,7 @@ class FeatureStats(nn.Module):
         check_youngs_feature("FeatureStats", youngs_feature)
         check_acc_scale("FeatureStats", acc_scale)
         check_layout("FeatureStats", layout)
-        check_normalizer("FeatureStats", normalizer)
-        if normalizer == "authors" and acc_scale != "velocity":
-            raise ValueError("FeatureStats: normalizer='authors' needs acc_scale='velocity' (the "
-                             f"authors' output scale), got {acc_scale!r}")
+        check_normalizer("FeatureStats", normalizer, acc_scale)
         self.normalizer = normalizer
         self.kind = kind
         self.acc_scale = acc_scale

@@ -148,10 +148,7 @@ class MeshODENetConfig:
         check_youngs_feature("MeshODENetConfig", self.youngs_feature)
         check_acc_scale("MeshODENetConfig", self.acc_scale)
         check_layout("MeshODENetConfig", self.layout)
-        check_normalizer("MeshODENetConfig", self.normalizer)
-        if self.normalizer == "authors" and self.acc_scale != "velocity":
-            raise ValueError("MeshODENetConfig.normalizer='authors' needs acc_scale='velocity' "
-                             f"(the authors' output scale), got {self.acc_scale!r}")
+        check_normalizer("MeshODENetConfig", self.normalizer, self.acc_scale)
         check_choice(self, "loss", LOSSES)
         if self.loss == "rms" and self.frame_weight:
             raise ValueError(f"MeshODENetConfig.frame_weight={self.frame_weight!r} has no "

@@ -125,19 +125,26 @@ def whole(api: SimpleNamespace, traj: dict) -> list:
     return list(zip(seg, spans, weights))
 
 
+def trajectory_loss(api, model, stats, traj: dict):
+    """Their training loss of one trajectory (the weighted sum over its one segment), as their
+    loop forms it; differentiable."""
+    import torch
+
+    loss = torch.tensor(0.0)
+    for seg, t_span, w in whole(api, traj):
+        pred, _ = model(seg, stats, t_span)
+        loss = loss + torch.tensor(w) * model.loss(pred, seg)
+    return loss
+
+
 def train_epoch(api, model, opt, stats, train: list, bar=None) -> float:
     """One pass over ``train`` in file order, one optimizer step per trajectory; the mean of
     their trajectory losses."""
-    import torch
-
     model.train()
     total = 0.0
     for traj in train:
         opt.zero_grad()
-        loss = torch.tensor(0.0)
-        for seg, t_span, w in whole(api, traj):
-            pred, _ = model(seg, stats, t_span)
-            loss = loss + torch.tensor(w) * model.loss(pred, seg)
+        loss = trajectory_loss(api, model, stats, traj)
         loss.backward()
         total += loss.item()
         opt.step()

@@ -85,16 +85,18 @@ def copy_data_stats(stats, theirs: dict, dt: float) -> None:
 
     to_phys = AUTHORS_FRAME_TIME / dt  # their velocity unit -> m/s
 
-    def put(norm, i, mean, std, unit=1.0):
-        if float(std) > AUTHORS_STD_MIN * 1.0000001:
-            norm.mean[i], norm.std[i] = float(mean) * unit, float(std) * unit
+    def put(norm, i, mean, std, unit=1.0) -> bool:
+        """Set feature ``i`` unless their std is their clamp; whether it was set."""
+        if float(std) <= AUTHORS_STD_MIN * 1.0000001:
+            return False
+        norm.mean[i], norm.std[i] = float(mean) * unit, float(std) * unit
+        return True
 
     with torch.no_grad():
         put(stats.node, 0, theirs["youngs_mean"][0], theirs["youngs_std"][0], AUTHORS_YOUNGS_UNIT)
         for k in range(3):
-            put(stats.node, 3 + k, theirs["vel_mean"][k], theirs["vel_std"][k], to_phys)
-            if float(theirs["vel_std"][k]) > AUTHORS_STD_MIN * 1.0000001:
-                stats.acc.std[k] = float(theirs["vel_std"][k]) * to_phys / (10 * dt)
+            if put(stats.node, 3 + k, theirs["vel_mean"][k], theirs["vel_std"][k], to_phys):
+                stats.acc.std[k] = stats.node.std[3 + k] / (10 * dt)
         for base, key in ((0, "mesh_edge"), (4, "edge")):
             m, s = theirs[f"{key}_mean"], theirs[f"{key}_std"]
             put(stats.edge, base, m[3], s[3])
@@ -176,10 +178,8 @@ def run(case: str, repo, data_dir=None, overrides=(), frames=None, trajectory: i
     for k, d in zip(probes, _field_diffs(api, ma, mo, stats, theirs_data[b], data, b, probes)):
         rows.append({"what": "field", "name": f"frame {k}", "frames": T, "step": 0, "rel_diff": d})
     # the whole rollout's loss and gradient
-    (seg, t_span, w), = authors.whole(api, theirs_data[b])
     ma.zero_grad()
-    pred, _ = ma(seg, stats, t_span)
-    la = torch.tensor(w) * ma.loss(pred, seg)
+    la = authors.trajectory_loss(api, ma, stats, theirs_data[b])
     la.backward()
     mo.zero_grad()
     lo = mo.training_loss(data, torch.tensor([b]))
@@ -206,9 +206,7 @@ def run(case: str, repo, data_dir=None, overrides=(), frames=None, trajectory: i
     for step in range(1, steps + 1):
         i = (step - 1) % len(theirs_data)
         opt_a.zero_grad()
-        (seg, t_span, w), = authors.whole(api, theirs_data[i])
-        pred, _ = ma(seg, stats, t_span)
-        (torch.tensor(w) * ma.loss(pred, seg)).backward()
+        authors.trajectory_loss(api, ma, stats, theirs_data[i]).backward()
         opt_a.step()
         opt_o.zero_grad()
         (mo.training_loss(data, torch.tensor([i])) / c).backward()
