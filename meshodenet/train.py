@@ -398,7 +398,9 @@ def progress_text(row: dict, state: dict, cfg: TrainConfig) -> str:
 def _restore(path: Path, model, opt, sched, gen, defaults: dict) -> dict:
     """Load ``last.pt`` into the model, optimizer, scheduler and RNGs; return the run state
     (``defaults`` for what an older checkpoint lacks: CPU time and budgets)."""
-    ck = load_checkpoint(path, model.device)
+    # read onto the CPU: load_state_dict copies onto the model's (and optimizer's) device, so a
+    # run goes on on another device than it was saved from
+    ck = load_checkpoint(path)
     try:
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])

@@ -104,6 +104,9 @@ def test_ours_resume_is_exact(tiny_case, tmp_path):
     a, b = _rows(tmp_path / "a"), _rows(tmp_path / "b")
     pd.testing.assert_frame_equal(a, b)
     assert list(b["epoch"]) == [0, 1, 2, 0] and list(b["code"]) == ["ours"] * 3 + ["standing_still"]
+    sessions = json.loads((tmp_path / "a" / core.SESSIONS_FILE).read_text())
+    assert [(s["first_epoch"], s["device"]) for s in sessions] == [(0, "cpu"), (1, "cpu")]
+    assert "torch" in sessions[0]["versions"] and sessions[0]["git_sha"]
     assert b["test_loss"].notna().all() and b["train_loss"].iloc[1:3].notna().all()
     # killed after last.pt but before its row: the next session recomputes the row
     csv = (tmp_path / "b" / core.CSV_FILE).read_text().splitlines()
@@ -112,6 +115,30 @@ def test_ours_resume_is_exact(tiny_case, tmp_path):
     pd.testing.assert_frame_equal(_rows(tmp_path / "b"), a)
     # another configuration in the same directory is refused
     assert _train(tiny_case, tmp_path / "b", "ours", 2, "--seed", "7") == 2
+
+
+def test_ours_goes_on_on_another_device(tiny_plate, tmp_path, monkeypatch):
+    """A run begun on the CPU goes on on a CUDA device (emulated: ``tests/fakecuda.py``, which
+    fails where a real GPU refuses to mix devices), the plate's ``paper`` preset with the
+    authors' normaliser; ``sessions.json`` says which device ran which epochs."""
+    from tests.fakecuda import FakeCuda
+
+    case, root = tiny_plate
+    out = tmp_path / "r"
+    argv = ["train", "--case", case.id, "--code", "ours", "--out", str(out), "--data-dir",
+            str(root), "--no-progress"]
+    assert main([*argv, "--epochs", "1"]) == 0
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with FakeCuda() as mode:
+        assert main([*argv, "--epochs", "2", "--device", "cuda"]) == 0
+    assert mode.ops > 100
+    rows = _rows(out)
+    assert list(rows["epoch"]) == [0, 1, 2, 0] and rows["test_loss"].notna().all()
+    sessions = json.loads((out / core.SESSIONS_FILE).read_text())
+    assert [(s["first_epoch"], s["device"]) for s in sessions] == [(0, "cpu"), (1, "cuda")]
+    assert json.loads((out / core.CONFIG_FILE).read_text())["extra"]["model"]["normalizer"] == (
+        "authors")
 
 
 def test_a_run_stored_before_a_field_existed_resumes_at_its_default(tiny_case, tmp_path):
@@ -166,10 +193,11 @@ def test_merge_table_and_figure(tiny_case, tmp_path):
 
 def test_variant_code_reads_the_resolved_settings():
     """Labels come from the stored model settings, not from the ``--set`` list: the plate's
-    ``paper`` preset (the authors' conventions) reads as the bisection run that set them."""
+    ``paper`` preset (the authors' conventions and normaliser) reads as the bisection run that
+    set them."""
     import dataclasses
 
-    from benchmarks.engine.ab.merge import AUTHORS_CONVENTIONS, variant_code
+    from benchmarks.engine.ab.merge import AUTHORS_CODE, variant_code
     from meshodenet.models.meshodenet import meshodenet_presets
 
     def cfg(kind, overrides=()):
@@ -177,9 +205,11 @@ def test_variant_code_reads_the_resolved_settings():
         return {"extra": {"model": json.loads(json.dumps(model)), "overrides": list(overrides)}}
 
     assert variant_code(cfg("line")) == "ours"
-    assert variant_code(cfg("triangle")) == AUTHORS_CONVENTIONS
+    assert variant_code(cfg("triangle")) == AUTHORS_CODE
     assert variant_code(cfg("triangle", ["model.loss=rms", "train.lr=0.001"])) == (
-        AUTHORS_CONVENTIONS + "+lr=0.001")
+        AUTHORS_CODE + "+lr=0.001")
+    assert variant_code({**cfg("triangle"), "seed": 43}) == AUTHORS_CODE + "+seed=43"
+    assert variant_code({**cfg("line"), "seed": 42}) == "ours"
 
 
 def test_published_log_excerpt():
@@ -206,11 +236,16 @@ def test_bad_checkout_exits_2(tmp_path, capsys, repo):
 @pytest.mark.parametrize("args, word", [(["--code", "theirs"], "--code"),
                                         (["--code", "ours", "--epochs", "0"], "--epochs"),
                                         (["--code", "authors"], "--authors-repo"),
-                                        (["--code", "ours", "--case", "nope"], "nope")])
+                                        (["--code", "ours", "--case", "nope"], "nope"),
+                                        (["--code", "ours", "--device", "tpu"], "--device"),
+                                        (["--code", "authors", "--device", "cuda"], "--device")]
+                         + ([] if torch.cuda.is_available() else
+                            [(["--code", "ours", "--device", "cuda"], "no CUDA device")]))
 def test_bad_arguments_exit_2(tmp_path, capsys, args, word):
     argv = ["train", "--case", "plate_cantilever", "--out", str(tmp_path / "o"), *args]
     assert main(argv) == 2
     assert word in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.skipif(not os.environ.get("MESHBENCH_AUTHORS_REPO"),

@@ -172,8 +172,10 @@ def test_paper_preset_takes_the_authors_conventions_on_triangles_only():
     from meshodenet.models.meshodenet import meshodenet_presets
 
     tri = meshodenet_presets("paper", "triangle")[1]
-    assert (tri.acc_scale, tri.loss, tri.layout) == ("velocity", "rms", "authors")
+    assert (tri.acc_scale, tri.loss, tri.layout, tri.normalizer) == ("velocity", "rms",
+                                                                      "authors", "authors")
     assert meshodenet_presets("paper", "line")[1] == MeshODENetConfig()
     for kind in ("line", "triangle"):  # quick keeps our conventions
         q = meshodenet_presets("quick", kind)[1]
-        assert (q.acc_scale, q.loss, q.layout) == ("acceleration", "mse", "ours")
+        assert (q.acc_scale, q.loss, q.layout, q.normalizer) == ("acceleration", "mse", "ours",
+                                                                  "ours")

@@ -207,12 +207,15 @@ QUICK = {
 
 
 #: ``paper`` per mesh kind: the ``MeshODENetConfig`` fields that differ from its defaults. On
-#: triangle meshes the authors' code's conventions (their output scale, root loss and feature
-#: layout): with them our code follows their code's test loss on the plate where ours drifted
-#: away from it (issue 37's A/B, docs/AB.md, "What differs"). Rods keep ours: their A/B
-#: followed the authors' code within 0.39-1.11x over 50 epochs with them, and the committed
-#: ``paper`` rod runs were trained with them.
-PAPER = {"triangle": dict(acc_scale="velocity", loss="rms", layout="authors")}
+#: triangle meshes the authors' code's conventions (their output scale, root loss, feature
+#: layout and normaliser): with them our model is their code to float32 round-off (the same
+#: gradients from the same weights: ``python -m benchmarks.engine.ab equiv``) and follows or
+#: beats their code's test loss on the plate, where ours drifted away from it (issue 37's A/B,
+#: docs/AB.md, "What differs" and "The out-of-plane channel"; the normaliser since
+#: 2026-12-07). Rods keep ours: their A/B followed the authors' code within 0.39-1.11x over 50
+#: epochs with them, and the committed ``paper`` rod runs were trained with them.
+PAPER = {"triangle": dict(acc_scale="velocity", loss="rms", layout="authors",
+                          normalizer="authors")}
 
 
 def meshodenet_presets(preset: str, kind: str) -> tuple[TrainConfig, MeshODENetConfig]:

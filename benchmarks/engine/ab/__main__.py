@@ -27,6 +27,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="first frames of every trajectory (default: the authors' rule, at most 400)")
     t.add_argument("--seed", type=int, default=42, help="seed of both codes (the authors': 42)")
     t.add_argument("--threads", type=int, default=1, help="torch threads (default 1: one core)")
+    t.add_argument("--device", default="cpu",
+                   help="--code ours only: cpu (default), cuda or cuda:K; a run started on one "
+                        "device goes on on another (docs/GPU.md)")
     t.add_argument("--set", dest="overrides", action="append", default=[], metavar="GROUP.FIELD=VALUE",
                    help="--code ours: override a paper-preset setting (train.* / model.*)")
     t.add_argument("--max-train", type=int, default=None,
@@ -71,6 +74,9 @@ def _train(args) -> int:
     from benchmarks.suite.registry import get_case
 
     case = get_case(args.case)
+    if args.device != "cpu" and args.code != "ours":
+        raise core.ABError(f"--device {args.device!r} is for --code ours only (the harness runs "
+                           "the authors' code on the CPU)")
     if args.code == "authors":
         from benchmarks.engine.ab.authors import check_checkout
 
@@ -96,7 +102,7 @@ def _train(args) -> int:
     else:
         from benchmarks.engine.ab import ours
 
-        ours.run(setup, args.out, args.data_dir, tuple(args.overrides), progress)
+        ours.run(setup, args.out, args.data_dir, tuple(args.overrides), progress, args.device)
     print(f"done: {args.out / core.CSV_FILE}")
     return 0
 
@@ -129,12 +135,15 @@ def _sigterm(signum, frame):
 def main(argv=None) -> int:
     from benchmarks.suite import procs
 
-    procs.apply_repro_env("cpu")  # the kernel pins of `meshbench train`, before torch loads
+    # the kernel pins of `meshbench train` (benchmarks.cli): numpy's before it loads, torch's
+    # unless --device names a GPU, before torch loads
+    procs.apply_repro_env("cuda")
     from benchmarks.engine.ab.core import ABError
     from benchmarks.suite.registry import RegistryError
     from groundtruth.store import StoreError
 
     args = build_parser().parse_args(argv)
+    procs.apply_repro_env(getattr(args, "device", "cpu"))
     old_term = signal.signal(signal.SIGTERM, _sigterm)
     try:
         return int(args.func(args) or 0)

@@ -235,6 +235,7 @@ def run(setup: core.Setup, out: Path, data_dir=None, repo=None, progress: bool =
         rows = [core.standing_still_row(setup.case, true), row]
         core.save_state(path, _state(model, opt, sched, 0, rows))
     core.write_csv(out, rows)
+    core.record_session(out, start)
     n_nodes = true.shape[2]
     for epoch in range(start, setup.epochs):
         clock, lr = core.Clock(), opt.param_groups[0]["lr"]

@@ -35,11 +35,16 @@ TIMING_COLUMNS = ("wall_s", "cpu_s", "test_wall_s", "test_cpu_s", "peak_rss_mb")
 CODES = ("authors", "ours")
 CSV_FILE = "ab.csv"
 CONFIG_FILE = "ab_config.json"
+#: One entry per invocation of ``train`` on a run directory: when, the epoch it started from,
+#: device, threads, library versions and git commit (a run may go on on another machine).
+SESSIONS_FILE = "sessions.json"
 #: The authors' time per frame (their ``--time_step`` and rk4 ``step_size``; their velocity
 #: is a difference of positions over it).
 FRAME_TIME = 0.1
 #: The authors' preprocessing keeps at most this many frames of a trajectory.
 AUTHORS_MAX_FRAMES = 400
+#: The authors' seed (their training script's), the default of both codes here.
+AUTHORS_SEED = 42
 #: Default epochs by mesh kind: issue 37's plate (triangles) and rod (line) A/B.
 DEFAULT_EPOCHS = {"triangle": 25, "line": 50}
 
@@ -140,7 +145,7 @@ class Setup:
     code: str
     epochs: int
     frames: int | None = None
-    seed: int = 42
+    seed: int = AUTHORS_SEED
     threads: int = 1
     max_train: int | None = None
     max_test: int | None = None
@@ -216,6 +221,30 @@ def _settings(config: dict) -> dict:
     under any options that resolve to the settings it was stored with."""
     extra = {k: v for k, v in (config.get("extra") or {}).items() if k != "overrides"}
     return {**config, "extra": extra}
+
+
+def record_session(out: Path, first_epoch: int, device="cpu") -> None:
+    """Append this invocation to ``out/sessions.json`` (``SESSIONS_FILE``), atomically."""
+    import datetime
+    import os
+
+    import torch
+
+    from groundtruth import store
+
+    path = out / SESSIONS_FILE
+    try:
+        sessions = json.loads(path.read_text()) if path.exists() else []
+    except (OSError, json.JSONDecodeError) as e:
+        raise ABError(f"{path}: unreadable ({e}); choose another --out") from None
+    if not isinstance(sessions, list):
+        raise ABError(f"{path}: not a list of sessions; choose another --out")
+    sessions.append({
+        "started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "first_epoch": int(first_epoch), "device": str(device),
+        "threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
+        "git_sha": store.git_sha(), "versions": store.library_versions()})
+    store.save_json(path, sessions)
 
 
 def _atomic_text(path: Path, text: str) -> None:

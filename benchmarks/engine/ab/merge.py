@@ -22,16 +22,17 @@ REFERENCE_LOG = Path(__file__).resolve().parents[3] / "docs" / "reference" / "au
 #: The published log belongs to this case only (their repository has no rod log).
 PUBLISHED_CASE = "plate_cantilever"
 #: Our model with the authors' code's conventions: the ``paper`` preset on triangle meshes
-#: (``meshodenet.models.meshodenet.PAPER``).
+#: 2026-12-06 to 2026-12-07.
 AUTHORS_CONVENTIONS = "ours+acc_scale=velocity+loss=rms+layout=authors"
-#: ... and their normaliser (their out-of-plane channel): their code, to float32 round-off.
+#: ... and their normaliser (their out-of-plane channel): their code, to float32 round-off; the
+#: ``paper`` preset on triangle meshes since 2026-12-07 (``meshodenet.models.meshodenet.PAPER``).
 AUTHORS_CODE = AUTHORS_CONVENTIONS + "+normalizer=authors"
 #: Output names: ``plate_ab.csv``, ``rod_ab.csv`` (other cases: their id).
 NAMES = {"plate_cantilever": "plate", "rod_falling": "rod"}
 CURVES = {"authors": ("their code, our data", "C3", "-"),
           "ours": ("ours, our conventions (rods' paper preset)", "C0", "-"),
-          AUTHORS_CONVENTIONS: ("ours, their conventions (plates' paper preset)", "C2", "-"),
-          AUTHORS_CODE: ("ours, their conventions and normaliser (their code's gradients)", "C9",
+          AUTHORS_CONVENTIONS: ("ours, their conventions but our normaliser", "C2", "-"),
+          AUTHORS_CODE: ("ours, their conventions and normaliser (plates' paper preset)", "C9",
                          "-"),
           "authors_published": ("their code, their data (published log)", "C7", "--")}
 
@@ -89,8 +90,9 @@ def variant_code(cfg: dict) -> str:
     ``ours+F=V+...`` with the model settings that differ from them, in the config's field order,
     and the ``--set train.`` settings (``model.acc_scale=velocity`` reads
     ``ours+acc_scale=velocity``; the plate's ``paper`` preset, the authors' conventions,
-    ``ours+acc_scale=velocity+loss=rms+layout=authors``). From the resolved settings the run
-    stored, so a label does not change when a preset does."""
+    ``ours+acc_scale=velocity+loss=rms+layout=authors+normalizer=authors``), and ``+seed=S``
+    for a seed other than the authors' 42. From the resolved settings the run stored, so a label
+    does not change when a preset does."""
     from meshodenet.models.meshodenet import MeshODENetConfig
 
     extra = cfg.get("extra") or {}
@@ -98,6 +100,8 @@ def variant_code(cfg: dict) -> str:
     default = core.jsonable(MeshODENetConfig())
     sets = [f"{k}={model[k]}" for k in default if k in model and model[k] != default[k]]
     sets += [o.split(".", 1)[-1] for o in extra.get("overrides") or [] if o.startswith("train.")]
+    if cfg.get("seed", core.AUTHORS_SEED) != core.AUTHORS_SEED:
+        sets.append(f"seed={cfg['seed']}")
     return "+".join(["ours", *sets])
 
 

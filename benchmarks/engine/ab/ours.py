@@ -102,14 +102,19 @@ def evaluate(model, test, true, case: str, epoch: int, batch: int) -> dict:
     return row
 
 
-def run(setup: core.Setup, out: Path, data_dir=None, overrides=(), progress: bool = True) -> list:
+def run(setup: core.Setup, out: Path, data_dir=None, overrides=(), progress: bool = True,
+        device="cpu") -> list:
     """Train ``paper`` MeshODENet on ``setup.case`` into ``out`` up to ``setup.epochs``
-    (continuing ``out/last.pt`` when it is there); returns the rows of ``ab.csv``."""
+    (continuing ``out/last.pt`` when it is there) on ``device`` (``cpu``, ``cuda``,
+    ``cuda:K``: a run may go on on another device than it started on; ``sessions.json`` says
+    which ran which epochs); returns the rows of ``ab.csv``."""
     import torch
 
+    from benchmarks.suite.runs import pick_device
     from meshodenet.data import Mesh, Trajectories, validation_split
     from meshodenet.train import fit
 
+    dev = pick_device(device)
     torch.set_num_threads(setup.threads)
     tr = core.load_arrays(setup.case, "train", data_dir, setup.max_train, setup.frames, "--max-train")
     te = core.load_arrays(setup.case, "test", data_dir, setup.max_test, setup.frames, "--max-test")
@@ -123,14 +128,15 @@ def run(setup: core.Setup, out: Path, data_dir=None, overrides=(), progress: boo
     core.check_resume(out, setup, core.data_id(tr, te),  # fields a stored run predates
                       {"train": core.jsonable(type(train_cfg)(), "epochs"),
                        "model": core.jsonable(type(model_cfg)())})
-    full = Trajectories.from_arrays(tr, name=f"{setup.case}/train.npz")
+    full = Trajectories.from_arrays(tr, device=dev, name=f"{setup.case}/train.npz")
     train, val = full.subset(torch.as_tensor(tr_idx)), full.subset(torch.as_tensor(val_idx))
-    test = Trajectories.from_arrays(te, name=f"{setup.case}/test.npz")
+    test = Trajectories.from_arrays(te, device=dev, name=f"{setup.case}/test.npz")
     torch.manual_seed(train_cfg.seed)
-    model = spec.build(mesh, model_cfg, train)
+    model = spec.build(mesh, model_cfg, train).to(dev)
     rec = Recorder(model)
     rows, resume = _start(model, rec, out, setup, test, train_cfg.eval_batch_size)
     core.write_csv(out, rows)
+    core.record_session(out, max(r["epoch"] for r in rows if r["code"] == "ours"), dev)
 
     def on_epoch_end(epoch: int, fit_row: dict) -> None:
         wall, cpu = rec.clock.seconds()
