@@ -141,7 +141,7 @@ def test_ours_goes_on_on_another_device(tiny_plate, tmp_path, monkeypatch):
         "authors")
 
 
-def test_a_run_stored_before_a_field_existed_resumes_at_its_default(tiny_case, tmp_path):
+def test_a_run_stored_before_a_field_existed_resumes_at_its_default(tiny_case, tmp_path, capsys):
     """A run whose ``ab_config.json`` predates model fields (the convention fields were added
     after the first A/B runs) was trained with their defaults: it resumes where the settings
     resolve to them, and is refused where they do not."""
@@ -153,6 +153,8 @@ def test_a_run_stored_before_a_field_existed_resumes_at_its_default(tiny_case, t
     del cfg["extra"]["train"]["budgets_s"]  # a tuple default: stored as a list
     (out / core.CONFIG_FILE).write_text(json.dumps(cfg))
     assert _train(tiny_case, out, "ours", 1, "--set", "model.acc_scale=velocity") == 2
+    err = capsys.readouterr().err  # names the field that differs, not a whole section
+    assert "extra.model.acc_scale: 'acceleration' there, 'velocity' now" in err
     assert _train(tiny_case, out, "ours", 2) == 0
     assert list(_rows(out)["epoch"]) == [0, 1, 2, 0]
 

@@ -187,13 +187,13 @@ def check_resume(out: Path, setup: Setup, data: dict, defaults: dict | None = No
             old = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise ABError(f"{path}: unreadable ({e}); choose another --out") from None
-        a, b = _settings(_with_defaults(old, defaults or {})), _settings(new)
+        a, b = _flat(_settings(_with_defaults(old, defaults or {}))), _flat(_settings(new))
         diff = sorted(k for k in set(a) | set(b) if k != "epochs" and a.get(k) != b.get(k))
         if diff:
-            show = lambda d: str([d.get(k) for k in diff])[:200]
-            raise ABError(f"{out} holds a run with another configuration ({', '.join(diff)}: "
-                          f"{show(old)} there, {show(new)} now); resume with the same options "
-                          "or choose another --out")
+            shown = "; ".join(f"{k}: {a.get(k)!r} there, {b.get(k)!r} now" for k in diff[:4])
+            more = f"; {len(diff) - 4} more" if len(diff) > 4 else ""
+            raise ABError(f"{out} holds a run with another configuration ({shown[:300]}{more}); "
+                          "resume with the same options or choose another --out")
         if old.get("epochs") != new["epochs"]:
             _atomic_text(path, json.dumps(new, indent=2, sort_keys=True) + "\n")
         return
@@ -214,6 +214,17 @@ def _with_defaults(config: dict, defaults: dict) -> dict:
         if isinstance(extra.get(section), dict):
             extra[section] = {**fields, **extra[section]}
     return {**config, "extra": extra}
+
+
+def _flat(config: dict, prefix: str = "") -> dict:
+    """``config``'s nested dicts as one dict of dotted keys (``extra.model.normalizer``)."""
+    out = {}
+    for k, v in config.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
 
 
 def _settings(config: dict) -> dict:
