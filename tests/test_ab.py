@@ -154,7 +154,7 @@ def test_a_run_stored_before_a_field_existed_resumes_at_its_default(tiny_case, t
     (out / core.CONFIG_FILE).write_text(json.dumps(cfg))
     assert _train(tiny_case, out, "ours", 1, "--set", "model.acc_scale=velocity") == 2
     err = capsys.readouterr().err  # names the field that differs, not a whole section
-    assert "extra.model.acc_scale: 'acceleration' there, 'velocity' now" in err
+    assert "extra.model.acc_scale: 'acceleration' -> 'velocity'" in err
     assert _train(tiny_case, out, "ours", 2) == 0
     assert list(_rows(out)["epoch"]) == [0, 1, 2, 0]
 

@@ -127,7 +127,9 @@ def apply_overrides(train_cfg, model_cfg, overrides: typing.Sequence[str]):
             dataclasses.replace(model_cfg, **changes["model"]))
 
 
-def _session_info(device, started: float) -> dict:
+def session_info(device, started: float) -> dict:
+    """A training session's provenance (``sessions.json``): when (``started``, a Unix time),
+    library versions, git commit, device, threads and CPU count."""
     import torch
 
     return {"started": datetime.datetime.fromtimestamp(started, datetime.timezone.utc)
@@ -136,12 +138,14 @@ def _session_info(device, started: float) -> dict:
             "threads": torch.get_num_threads(), "cpu_count": os.cpu_count()}
 
 
-def _diff(a: dict, b: dict, prefix: str = "") -> list[str]:
+def config_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
+    """``"key.path: old -> new"`` for every leaf where the nested dicts ``a`` and ``b`` differ,
+    sorted."""
     out = []
     for k in sorted(set(a) | set(b)):
         va, vb = a.get(k), b.get(k)
         if isinstance(va, dict) and isinstance(vb, dict):
-            out += _diff(va, vb, f"{prefix}{k}.")
+            out += config_diff(va, vb, f"{prefix}{k}.")
         elif va != vb:
             out.append(f"{prefix}{k}: {va!r} -> {vb!r}")
     return out
@@ -235,8 +239,8 @@ class RunDecision:
 def _changes(old: dict, new: dict, ignore: tuple) -> list[str]:
     """The differences of ``new`` from ``old`` not under the ``ignore`` prefixes."""
     if not ignore:
-        return [] if old == new else (_diff(old, new) or ["the configuration"])
-    return [d for d in _diff(old, new) if not d.startswith(ignore)]
+        return [] if old == new else (config_diff(old, new) or ["the configuration"])
+    return [d for d in config_diff(old, new) if not d.startswith(ignore)]
 
 
 def _finished_record(out: Path, config: dict, finished: tuple, ids: dict) -> dict | None:
@@ -371,7 +375,7 @@ def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_di
     broadcast_parameters(model)
     sessions_path = out / "sessions.json"
     sessions = json.loads(sessions_path.read_text()) if sessions_path.exists() else []
-    session = _session_info(dev, t_start)
+    session = session_info(dev, t_start)
     session["resumed"] = resume
     history = out / "history.csv"
     before = history.stat().st_mtime_ns if history.exists() else None

@@ -187,13 +187,15 @@ def check_resume(out: Path, setup: Setup, data: dict, defaults: dict | None = No
             old = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise ABError(f"{path}: unreadable ({e}); choose another --out") from None
-        a, b = _flat(_settings(_with_defaults(old, defaults or {}))), _flat(_settings(new))
-        diff = sorted(k for k in set(a) | set(b) if k != "epochs" and a.get(k) != b.get(k))
+        from benchmarks.suite.runs import config_diff
+
+        diff = [d for d in config_diff(_settings(_with_defaults(old, defaults or {})),
+                                       _settings(new)) if not d.startswith("epochs:")]
         if diff:
-            shown = "; ".join(f"{k}: {a.get(k)!r} there, {b.get(k)!r} now" for k in diff[:4])
             more = f"; {len(diff) - 4} more" if len(diff) > 4 else ""
-            raise ABError(f"{out} holds a run with another configuration ({shown[:300]}{more}); "
-                          "resume with the same options or choose another --out")
+            raise ABError(f"{out} holds a run with another configuration (stored -> now: "
+                          f"{'; '.join(diff[:4])[:300]}{more}); resume with the same options "
+                          "or choose another --out")
         if old.get("epochs") != new["epochs"]:
             _atomic_text(path, json.dumps(new, indent=2, sort_keys=True) + "\n")
         return
@@ -216,17 +218,6 @@ def _with_defaults(config: dict, defaults: dict) -> dict:
     return {**config, "extra": extra}
 
 
-def _flat(config: dict, prefix: str = "") -> dict:
-    """``config``'s nested dicts as one dict of dotted keys (``extra.model.normalizer``)."""
-    out = {}
-    for k, v in config.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
 def _settings(config: dict) -> dict:
     """``config`` without how its settings were given (``--set``'s ``overrides``): a run resumes
     under any options that resolve to the settings it was stored with."""
@@ -235,12 +226,10 @@ def _settings(config: dict) -> dict:
 
 
 def record_session(out: Path, first_epoch: int, device="cpu") -> None:
-    """Append this invocation to ``out/sessions.json`` (``SESSIONS_FILE``), atomically."""
-    import datetime
-    import os
-
-    import torch
-
+    """Append this invocation to ``out/sessions.json`` (``SESSIONS_FILE``), atomically: the
+    provenance ``meshbench train`` records (``benchmarks.suite.runs.session_info``) and the
+    epoch it started from."""
+    from benchmarks.suite.runs import session_info
     from groundtruth import store
 
     path = out / SESSIONS_FILE
@@ -250,11 +239,7 @@ def record_session(out: Path, first_epoch: int, device="cpu") -> None:
         raise ABError(f"{path}: unreadable ({e}); choose another --out") from None
     if not isinstance(sessions, list):
         raise ABError(f"{path}: not a list of sessions; choose another --out")
-    sessions.append({
-        "started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "first_epoch": int(first_epoch), "device": str(device),
-        "threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
-        "git_sha": store.git_sha(), "versions": store.library_versions()})
+    sessions.append({**session_info(device, time.time()), "first_epoch": int(first_epoch)})
     store.save_json(path, sessions)
 
 
