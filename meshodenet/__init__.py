@@ -6,12 +6,12 @@ Public names: ``Mesh``, ``Trajectories`` (data), ``TrajectoryModel`` (the model 
 ``MODELS``, ``TrainConfig``, ``fit``.
 """
 
-from meshodenet.data import DataError, Mesh, Trajectories
-from meshodenet.integrators import GRADIENT_MODES, INTEGRATORS, odesolve
+from meshodenet.gnn.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.integrators.explicit import GRADIENT_MODES, INTEGRATORS, odesolve
 from meshodenet.interface import TrajectoryModel
-from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.mesh.data import DataError, Mesh, Trajectories
 from meshodenet.registry import MODELS, get_model_spec, load_model, register_model
-from meshodenet.train import TrainConfig, fit
+from meshodenet.training.train import TrainConfig, fit
 
 __all__ = ["DataError", "Mesh", "Trajectories", "GRADIENT_MODES", "INTEGRATORS", "odesolve",
            "TrajectoryModel", "MeshODENet", "MeshODENetConfig", "MODELS", "get_model_spec",

@@ -1,6 +1,6 @@
 """The one model interface every learned simulator of meshbench implements.
 
-Training (``meshodenet.train``), rollouts and metrics call only these methods, so MeshODENet,
+Training (``meshodenet.training.train``), rollouts and metrics call only these methods, so MeshODENet,
 MeshGraphNet and any user model are trained and compared on identical terms.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from meshodenet.data import Mesh, Trajectories
+from meshodenet.mesh.data import Mesh, Trajectories
 
 
 class TrajectoryModel(nn.Module):

@@ -1,8 +1,9 @@
 """Registries of the torch side, keyed by the stable ids used in CSV columns.
 
-``MODELS`` maps a model id to its ``ModelSpec``, built from the modules of
-``meshodenet.models`` (one per model: config, presets, model); a user adds a model from their
-own file with ``register_model``. ``INTEGRATORS`` is re-exported from ``meshodenet.integrators``.
+``MODELS`` maps a model id to its ``ModelSpec``, built from the model modules of
+``meshodenet.gnn`` and ``meshodenet.energy`` (one per model: config, presets, model); a user adds
+a model from their own file with ``register_model``. ``INTEGRATORS`` is re-exported from
+``meshodenet.integrators.explicit``.
 """
 
 from __future__ import annotations
@@ -12,18 +13,18 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 from meshbench_registry import lookup
-from meshodenet.data import Mesh
-from meshodenet.integrators import INTEGRATORS
-from meshodenet.models.energy import EnergyConfig, ImplicitEnergy, energy_presets
-from meshodenet.models.energy_dissipation import (
+from meshodenet.energy.model import EnergyConfig, ImplicitEnergy, energy_presets
+from meshodenet.energy.model_dissipation import (
     DissipationConfig,
     ImplicitEnergyDissipation,
     dissipation_presets,
 )
-from meshodenet.models.imex import ImexConfig, MeshODENetIMEX, imex_presets
-from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig, meshodenet_presets
-from meshodenet.models.mgn import MeshGraphNet, MeshGraphNetConfig, mgn_presets
-from meshodenet.models.unrolled import UnrolledMGN, UnrolledMGNConfig, unrolled_mgn_presets
+from meshodenet.gnn.imex import ImexConfig, MeshODENetIMEX, imex_presets
+from meshodenet.gnn.meshodenet import MeshODENet, MeshODENetConfig, meshodenet_presets
+from meshodenet.gnn.mgn import MeshGraphNet, MeshGraphNetConfig, mgn_presets
+from meshodenet.gnn.unrolled import UnrolledMGN, UnrolledMGNConfig, unrolled_mgn_presets
+from meshodenet.integrators.explicit import INTEGRATORS
+from meshodenet.mesh.data import Mesh
 
 
 @dataclass(frozen=True)
@@ -92,8 +93,8 @@ def register_model(name: str, spec: ModelSpec, overwrite: bool = False) -> Model
 
 
 def load_model(checkpoint: str | Path, device="cpu"):
-    """Rebuild the model saved in a checkpoint written by ``meshodenet.train.fit``."""
-    from meshodenet.train import load_checkpoint
+    """Rebuild the model saved in a checkpoint written by ``meshodenet.training.train.fit``."""
+    from meshodenet.training.train import load_checkpoint
 
     ck = load_checkpoint(Path(checkpoint), device)
     info = ck["model_info"]

@@ -141,7 +141,7 @@ def check_geometry_derivatives(geometry, kind: str, x, nodes, rest, label: str,
     import torch
     from torch.func import hessian, jacrev, vmap
 
-    from meshodenet.energy import measure
+    from meshodenet.energy.core import measure
 
     q, dq, d2q = geometry(x, nodes, rest, second=True)
     k = nodes.shape[1]

@@ -1,4 +1,4 @@
-"""The A/B harness (``benchmarks.engine.ab``, docs/AB.md): the conversion to the authors' layout,
+"""The A/B harness (``benchmarks.ab``, docs/AB.md): the conversion to the authors' layout,
 the loss in their units and its relation to our RMSE, resuming a run exactly, the merged table,
 and the bad-input errors. The authors' code itself is needed only by the last test, skipped
 unless ``MESHBENCH_AUTHORS_REPO`` names a checkout of it."""
@@ -14,9 +14,9 @@ import pandas as pd
 import pytest
 import torch
 
-from benchmarks.engine.ab import core
-from benchmarks.engine.ab.__main__ import main
-from benchmarks.engine.ab.convert import authors_stats, authors_velocity, convert, mesh_edges
+from benchmarks.ab import core
+from benchmarks.ab.__main__ import main
+from benchmarks.ab.convert import authors_stats, authors_velocity, convert, mesh_edges
 from tests.conftest import rod_arrays, strip_arrays
 
 
@@ -199,8 +199,8 @@ def test_variant_code_reads_the_resolved_settings():
     set them."""
     import dataclasses
 
-    from benchmarks.engine.ab.merge import AUTHORS_CODE, variant_code
-    from meshodenet.models.meshodenet import meshodenet_presets
+    from benchmarks.ab.merge import AUTHORS_CODE, variant_code
+    from meshodenet.gnn.meshodenet import meshodenet_presets
 
     def cfg(kind, overrides=()):
         model = dataclasses.asdict(meshodenet_presets("paper", kind)[1])
@@ -215,7 +215,7 @@ def test_variant_code_reads_the_resolved_settings():
 
 
 def test_published_log_excerpt():
-    from benchmarks.engine.ab.merge import published_rows
+    from benchmarks.ab.merge import published_rows
 
     rows = {r["epoch"]: r["test_loss"] for r in published_rows("plate_cantilever")}
     assert rows[1] == pytest.approx(0.384, abs=5e-4) and rows[199] == pytest.approx(0.015, abs=5e-4)
@@ -262,7 +262,7 @@ def test_authors_resume_is_exact(tiny_case, tmp_path):
 
 # --- equiv: the same weights in both codes ------------------------------------------------------
 def _fake_checkout(path):
-    from benchmarks.engine.ab.authors import REQUIRED
+    from benchmarks.ab.authors import REQUIRED
 
     for f in REQUIRED:
         (path / f).parent.mkdir(parents=True, exist_ok=True)
@@ -298,7 +298,7 @@ def test_equiv_with_their_normaliser_is_their_code(tiny_plate, tmp_path):
     """Their weights in our model: with ``normalizer="authors"`` the field, the loss, every
     gradient and two optimizer steps agree to float32 round-off; with ours the gradients do not
     (their live out-of-plane direction, docs/AB.md)."""
-    from benchmarks.engine.ab import equiv
+    from benchmarks.ab import equiv
 
     case, root = tiny_plate
     repo = os.environ["MESHBENCH_AUTHORS_REPO"]

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from meshodenet.data import Mesh, Trajectories
-from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.gnn.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.mesh.data import Mesh, Trajectories
 from tests.conftest import rod_arrays, strip_arrays
 
 
@@ -169,7 +169,7 @@ def test_bad_settings_name_the_field(fields, name):
 def test_paper_preset_takes_the_authors_conventions_on_triangles_only():
     """Issue 37's A/B: the plate's ``paper`` preset is the authors' code's conventions; the
     rod's keeps ours (its committed runs)."""
-    from meshodenet.models.meshodenet import meshodenet_presets
+    from meshodenet.gnn.meshodenet import meshodenet_presets
 
     tri = meshodenet_presets("paper", "triangle")[1]
     assert (tri.acc_scale, tri.loss, tri.layout, tri.normalizer) == ("velocity", "rms",

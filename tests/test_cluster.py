@@ -146,7 +146,7 @@ def test_hand_started_scheduler_and_two_workers(root, tmp_path):
 
 @pytest.mark.slow
 def test_worker_killed_mid_run_is_resumed_by_the_next_invocation(root, tmp_path):
-    from meshodenet.train import load_checkpoint
+    from meshodenet.training.train import load_checkpoint
 
     cl = HandCluster(tmp_path, 1)
     runs = root / "runs_kill"

@@ -12,8 +12,8 @@ import pandas as pd
 import pytest
 import torch
 
-from meshodenet import train as T
-from meshodenet.train import TrainConfig, budget_checkpoint, fit, load_checkpoint
+from meshodenet.training import train as T
+from meshodenet.training.train import TrainConfig, budget_checkpoint, fit, load_checkpoint
 from tests.conftest import rod_arrays
 from tests.test_meshodenet_train import _fit_setup
 

@@ -41,9 +41,9 @@ def test_fake_cuda_refuses_what_cuda_refuses():
 def _train_and_roll_out(model_id, arrays, tmp_path, **model_changes):
     """``train_resolved``'s order on the emulated device: data there, the model built from it
     and moved there, one epoch of ``fit`` (training, validation, checkpoints), a rollout."""
-    from meshodenet.data import Mesh, Trajectories
+    from meshodenet.mesh.data import Mesh, Trajectories
     from meshodenet.registry import get_model_spec
-    from meshodenet.train import fit
+    from meshodenet.training.train import fit
 
     spec = get_model_spec(model_id)
     mesh = Mesh.from_arrays(arrays)
@@ -159,7 +159,7 @@ def test_torch_kernel_pins_are_skipped_for_cuda_only(monkeypatch):
 def test_fast_engine_tape_budget_per_device(monkeypatch):
     """The CPU keeps ``TAPE_BUDGET_BYTES`` of activations; a GPU a share of its free memory
     (never less than the CPU's)."""
-    from meshodenet import fast
+    from meshodenet.gnn import fast
 
     assert fast.tape_budget(torch.device("cpu")) == fast.TAPE_BUDGET_BYTES
     monkeypatch.setattr(torch.cuda, "mem_get_info", lambda d=None: (40 * 2**30, 80 * 2**30))
@@ -188,7 +188,7 @@ def test_train_on_cuda_records_the_device(tiny_case, tmp_path, monkeypatch):
 def test_bench_sections_run_on_an_emulated_gpu():
     """``meshbench bench --device cuda``'s work in this process: every regime, the surrogate's
     rollouts and MeshGraphNet's step and rollout, with the model and data on the device."""
-    from benchmarks.engine import enginebench as eb
+    from benchmarks.cost import enginebench as eb
 
     with FakeCuda():
         for regime in eb.REGIMES:

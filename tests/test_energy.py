@@ -1,4 +1,4 @@
-"""Implicit-Energy (``meshodenet.energy``, ``meshodenet.models.energy``): the learned energy's
+"""Implicit-Energy (``meshodenet.energy.core``, ``meshodenet.energy.model``): the learned energy's
 derivatives and invariances, the backward-Euler step and its implicit gradients, the
 least-squares stiffness, the solver's order, training."""
 
@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from meshodenet.data import Mesh, Trajectories
-from meshodenet.energy import measure
-from meshodenet.implicit import NewtonError
-from meshodenet.models.energy import STIFFNESS_PRIORS, EnergyConfig, ImplicitEnergy
+from meshodenet.energy.core import measure
+from meshodenet.energy.model import STIFFNESS_PRIORS, EnergyConfig, ImplicitEnergy
+from meshodenet.integrators.implicit import NewtonError
+from meshodenet.mesh.data import Mesh, Trajectories
 from meshodenet.registry import get_model_spec, load_model
 from tests.conftest import check_geometry_derivatives, rod_arrays, strip_arrays
 
@@ -287,7 +287,7 @@ def test_least_squares_stiffness_recovers_a_quadratic_energy():
 
 
 def test_registered_trains_and_reloads(tmp_path):
-    from meshodenet.train import fit
+    from meshodenet.training.train import fit
 
     spec = get_model_spec("implicit_energy")
     arrays = rod_arrays(B=4, T=6)
@@ -318,7 +318,7 @@ def test_window_training_runs_exact_steps():
 
 
 def test_bench_section_times_the_model_against_the_solver(tiny_case, tmp_path):
-    from benchmarks.engine.energybench import energy_bench, energy_line
+    from benchmarks.cost.energybench import energy_bench, energy_line
 
     case, root = tiny_case
     lines = []
@@ -348,7 +348,7 @@ def test_rod_hinge_derivatives_match_finite_differences_and_autograd():
     """``dq/dx`` and ``d2q/dx2`` of ``q = |kappa - kappa_0|^2``: analytic (``_hinge_geometry``)
     against central differences of ``q`` and of the analytic gradient (h = 1e-6) and against
     ``torch.func`` (the derivatives before issue 38), on 64 random bent hinges."""
-    from meshodenet.energy import _hinge_geometry
+    from meshodenet.energy.core import _hinge_geometry
 
     x, nodes, kap0 = _random_rod_hinges(64)
     check_geometry_derivatives(_hinge_geometry, "hinge", x, nodes, kap0, "rod hinge", 1e-13)
@@ -359,7 +359,7 @@ def test_rod_hinge_derivatives_match_finite_differences_and_autograd():
 def test_batched_energy_equals_the_assembled_energy(make, prior):
     """``BatchedEnergy.evaluate`` (one stacked MLP pass, band storage, a subset of the batch)
     equals ``EnergySystem``'s energy, gradient and dense Hessian on the unknowns."""
-    from meshodenet.energy import BatchedEnergy
+    from meshodenet.energy.core import BatchedEnergy
 
     arrays = make()
     model, tr = _model(arrays, stiffness_prior=prior)

@@ -1,4 +1,4 @@
-"""Implicit-Energy's bending term for triangle meshes (``meshodenet.energy``, kind
+"""Implicit-Energy's bending term for triangle meshes (``meshodenet.energy.core``, kind
 ``dihedral``): the hinges, the dihedral angle and its analytic derivatives against central
 differences and autograd, invariances, zero force and positive stiffness at rest, the
 out-of-plane stiffness it gives a flat sheet, backward-Euler steps and rollouts of a tiny
@@ -14,10 +14,10 @@ import pytest
 import torch
 from torch.func import jacrev, vmap
 
-from meshodenet.data import Mesh, Trajectories
-from meshodenet.energy import _dihedral_geometry, dihedral_angle
-from meshodenet.graph import triangle_hinges
-from meshodenet.models.energy import EnergyConfig, ImplicitEnergy
+from meshodenet.energy.core import _dihedral_geometry, dihedral_angle
+from meshodenet.energy.model import EnergyConfig, ImplicitEnergy
+from meshodenet.mesh.data import Mesh, Trajectories
+from meshodenet.mesh.graph import triangle_hinges
 from meshodenet.registry import get_model_spec, load_model
 from tests.conftest import check_geometry_derivatives, strip_arrays
 from tests.test_energy import set_known_energy
@@ -335,7 +335,7 @@ def test_least_squares_stiffness_recovers_the_bending_stiffness():
 def test_smoke_preset_trains_on_a_tiny_plate_hanging(tmp_path):
     """``smoke`` (2 epochs) on the tiny ground-truth ``plate_hanging``: the bending term
     trains, the checkpoint reloads to the same rollout."""
-    from meshodenet.train import fit
+    from meshodenet.training.train import fit
 
     spec = get_model_spec("implicit_energy")
     arrays = _tiny_plate_hanging(t_end=0.03)

@@ -14,9 +14,9 @@ import math
 import pytest
 import torch
 
-from meshodenet.data import Mesh, Trajectories
-from meshodenet.energy import SATURATION, BatchedEnergy, measure
-from meshodenet.models.energy import EnergyConfig
+from meshodenet.energy.core import SATURATION, BatchedEnergy, measure
+from meshodenet.energy.model import EnergyConfig
+from meshodenet.mesh.data import Mesh, Trajectories
 from meshodenet.registry import get_model_spec, load_model
 from tests.conftest import rod_arrays, strip_arrays
 from tests.test_energy import _model, _perturbed, check_energy_derivatives
@@ -94,7 +94,7 @@ def test_range_is_the_training_frames_and_old_configs_have_no_clamp():
     arrays = strip_arrays()
     mesh = Mesh.from_arrays(arrays)
     tr = Trajectories.from_arrays(arrays, dtype=torch.float64)
-    from meshodenet.models.energy import ImplicitEnergy
+    from meshodenet.energy.model import ImplicitEnergy
 
     model = ImplicitEnergy(mesh, EnergyConfig(hidden=8, layers=1, clamp_q=True), tr)
     for k, (nodes, _, rest, l0) in model._elems().items():
@@ -111,7 +111,7 @@ def test_range_is_the_training_frames_and_old_configs_have_no_clamp():
 
 
 def test_clamped_model_trains_and_reloads(tmp_path):
-    from meshodenet.train import fit
+    from meshodenet.training.train import fit
 
     spec = get_model_spec("implicit_energy")
     arrays = strip_arrays(B=4, T=6)

@@ -1,4 +1,4 @@
-"""Implicit-Energy told less (``meshodenet.dissipation``, ``meshodenet.models.energy_dissipation``):
+"""Implicit-Energy told less (``meshodenet.energy.dissipation``, ``meshodenet.energy.model_dissipation``):
 the learned dissipation's derivatives, sign and invariances, its place in the backward-Euler
 step, the least-squares drag, training and reloading, configuration errors."""
 
@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-from meshodenet.data import Mesh, Trajectories
-from meshodenet.dissipation import node_features
-from meshodenet.models.energy import ImplicitEnergy
-from meshodenet.models.energy_dissipation import (
+from meshodenet.energy.dissipation import node_features
+from meshodenet.energy.model import ImplicitEnergy
+from meshodenet.energy.model_dissipation import (
     DissipationConfig,
     ImplicitEnergyDissipation,
     dissipation_presets,
 )
+from meshodenet.mesh.data import Mesh, Trajectories
 from meshodenet.registry import get_model_spec, load_model
 from tests.conftest import rod_arrays, strip_arrays
 
@@ -235,7 +235,7 @@ def test_node_features_are_standardised_and_see_mass_and_measure():
 
 @pytest.mark.parametrize("make", [rod_arrays, strip_arrays])
 def test_registered_trains_and_reloads(make, tmp_path):
-    from meshodenet.train import fit
+    from meshodenet.training.train import fit
 
     spec = get_model_spec("implicit_energy_dissipation")
     arrays = make(B=4, T=6)
@@ -260,7 +260,7 @@ def test_trains_on_the_solvers_data(tiny_case, tmp_path):
     at the data's (a free body: the total-momentum fit), trains end to end, reloads and rolls
     the test split out closer than standing still."""
     from groundtruth import store
-    from meshodenet.train import fit
+    from meshodenet.training.train import fit
 
     case, root = tiny_case
     train = store.load_split(case, "train", root)

@@ -1,4 +1,4 @@
-"""``meshodenet.energy_line``: the batched solver's numpy evaluation of a planar mesh's edge and
+"""``meshodenet.energy.planar``: the batched solver's numpy evaluation of a planar mesh's edge and
 rod-hinge energy (issue 38, item 1) against the torch one it stands in for."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from meshodenet import energy_line as el
-from meshodenet.energy import BatchedEnergy, _edge_geometry, _hinge_geometry
-from meshodenet.models.energy import STIFFNESS_PRIORS, ImplicitEnergy
+from meshodenet.energy import planar as el
+from meshodenet.energy.core import BatchedEnergy, _edge_geometry, _hinge_geometry
+from meshodenet.energy.model import STIFFNESS_PRIORS, ImplicitEnergy
 from tests.conftest import rod_arrays, strip_arrays
 from tests.test_energy import _model, _perturbed
 
@@ -109,7 +109,7 @@ def test_the_rollout_uses_numpy_where_it_applies_and_agrees_with_torch():
     """A planar rod's and an in-plane strip's batched rollouts evaluate in numpy and roll out
     the positions of the torch evaluation to Newton's tolerance; an out-of-plane strip, the
     learned-dissipation model and ``clamp_q`` keep torch."""
-    from meshodenet.models.energy_dissipation import ImplicitEnergyDissipation
+    from meshodenet.energy.model_dissipation import ImplicitEnergyDissipation
 
     for make in (rod_arrays, planar_strip_arrays):
         arrays = make()
@@ -146,8 +146,8 @@ def test_the_predictor_saves_newton_iterations_and_keeps_the_positions(tmp_path)
     from benchmarks.suite.registry import CASES, register_case
     from groundtruth import store
     from groundtruth.cases import RodCase
-    from meshodenet.data import Mesh, Trajectories
-    from meshodenet.models.energy import energy_presets
+    from meshodenet.energy.model import energy_presets
+    from meshodenet.mesh.data import Mesh, Trajectories
 
     case = dataclasses.replace(RodCase(), id="rod_predictor_test", n_train=2, n_test=2,
                                t_end=1.0)
@@ -202,7 +202,7 @@ def test_newton_starts_again_without_the_predictor_where_it_fails(monkeypatch):
     """A Newton solve that does not converge from the predicted first guess is solved again
     from ``x_k + h v_k`` (the learned-dissipation model's rod rollout once failed so): the
     rollout goes through and equals the one without the predictor."""
-    from meshodenet.implicit import NewtonError
+    from meshodenet.integrators.implicit import NewtonError
 
     arrays = rod_arrays(T=12, dt=0.02)
     model, tr = _model(arrays)

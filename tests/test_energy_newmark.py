@@ -10,9 +10,9 @@ import math
 import pytest
 import torch
 
-from meshodenet.data import Trajectories
-from meshodenet.models.energy import EnergyConfig
-from meshodenet.models.energy_dissipation import DissipationConfig
+from meshodenet.energy.model import EnergyConfig
+from meshodenet.energy.model_dissipation import DissipationConfig
+from meshodenet.mesh.data import Trajectories
 from tests.conftest import rod_arrays, strip_arrays
 from tests.test_energy import _model
 
@@ -128,8 +128,8 @@ def test_a_failed_interval_is_retried_in_halves(monkeypatch, integrator):
     """``max_halvings``: an interval whose Newton fails is taken as two half steps (the same
     frames as a rollout sampled twice as finely there); without halvings, or with too few, the
     failure stands."""
-    from meshodenet.implicit import NewtonError
-    from meshodenet.models.energy import ImplicitEnergy
+    from meshodenet.energy.model import ImplicitEnergy
+    from meshodenet.integrators.implicit import NewtonError
 
     arrays = rod_arrays()
     model, tr = _model(arrays, integrator=integrator, newmark_gamma=0.75)

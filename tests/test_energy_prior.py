@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from meshodenet.data import Mesh, Trajectories
-from meshodenet.energy import POWER
-from meshodenet.models.energy import STIFFNESS_PRIORS, EnergyConfig, energy_presets
+from meshodenet.energy.core import POWER
+from meshodenet.energy.model import STIFFNESS_PRIORS, EnergyConfig, energy_presets
+from meshodenet.mesh.data import Mesh, Trajectories
 from meshodenet.registry import get_model_spec, load_model
 from tests.conftest import rod_arrays, strip_arrays
 from tests.test_energy import _model, set_known_energy
@@ -97,7 +97,7 @@ def test_stiffness_prior_config_defaults_and_presets():
 
 
 def test_features_prior_trains_and_reloads(tmp_path):
-    from meshodenet.train import fit
+    from meshodenet.training.train import fit
 
     spec = get_model_spec("implicit_energy")
     arrays = strip_arrays(B=4, T=6)

@@ -1,5 +1,5 @@
-"""The fast path (``meshodenet.network``, ``meshodenet.fast``) against the reference
-implementation (``meshodenet.reference``) in float64: vector field, its gradients, whole
+"""The fast path (``meshodenet.gnn.network``, ``meshodenet.gnn.fast``) against the reference
+implementation (``meshodenet.gnn.reference``) in float64: vector field, its gradients, whole
 rollouts and their gradients, on the tiny rod and strip, the rod of ``rod_falling``
 (batched) and the plate of the registered ``plate_cantilever`` case, for several
 architectures and integrators."""
@@ -11,8 +11,8 @@ from dataclasses import replace
 import pytest
 import torch
 
-from meshodenet.data import Mesh, Trajectories
-from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.gnn.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.mesh.data import Mesh, Trajectories
 
 torch.set_num_threads(1)
 
@@ -20,7 +20,7 @@ TOL = {"rtol": 1e-10, "atol": 1e-12}
 
 
 def case_arrays(case_id, n=3, frames=6):
-    from benchmarks.engine.enginebench import bench_arrays
+    from benchmarks.cost.enginebench import bench_arrays
     from benchmarks.suite.registry import get_case
 
     return bench_arrays(get_case(case_id), n, frames, None)[0]
@@ -214,7 +214,7 @@ def test_field_follows_parameter_updates():
 
 # --- MeshGraphNet -------------------------------------------------------------------------------
 def mgn_pair(arrays, config, seed=0):
-    from meshodenet.models.mgn import MeshGraphNet
+    from meshodenet.gnn.mgn import MeshGraphNet
 
     data = Trajectories.from_arrays(arrays, dtype=torch.float64)
     models = []
@@ -232,7 +232,7 @@ def mgn_pair(arrays, config, seed=0):
 
 @pytest.mark.parametrize("source", ["tiny", "rod_falling", "plate_cantilever"])
 def test_mgn_one_step_training_and_rollout_match(arrays, source):
-    from meshodenet.models.mgn import MeshGraphNetConfig
+    from meshodenet.gnn.mgn import MeshGraphNetConfig
 
     arr = arrays if source == "tiny" else case_arrays(source, n=2, frames=5)
     cfg = MeshGraphNetConfig(hidden=16, layers=3, noise=0.01)
@@ -279,7 +279,7 @@ def test_bench_engine_cli_json_report_and_compare(tmp_path, capsys):
 def test_bench_compare_skips_a_graph_whose_mesh_changed():
     """A baseline measured on another mesh of the same graph name (the plate before the in-plane
     case) is not compared: its rates are of other work."""
-    from benchmarks.engine.report import compare
+    from benchmarks.cost.report import compare
 
     def res(nodes, rate, epoch_s):
         r = {"evals_per_s": rate}
@@ -314,7 +314,7 @@ def test_bench_authors_stand_in_counts_its_evaluations_and_trains_every_weight(g
     """`--impl authors`: torchdiffeq's rk4 over ``k`` intervals calls the authors' field 4k times
     (the evaluations the bench divides by), the loss reaches every weight, and a batch of rods
     is one graph of ``n`` times the nodes."""
-    from benchmarks.engine.enginebench import Regime
+    from benchmarks.cost.enginebench import Regime
 
     r = Regime(graph, "train", "authors", 3)
     f = r.authors.f
@@ -340,9 +340,9 @@ def test_engine_is_a_config_field_and_old_runs_read_as_the_default(model_id, tmp
     from dataclasses import asdict
 
     from benchmarks.suite.runs import with_defaults
-    from meshodenet.models.common import PRESETS
     from meshodenet.registry import get_model_spec, load_model
-    from meshodenet.train import fit
+    from meshodenet.training.presets import PRESETS
+    from meshodenet.training.train import fit
     from tests.conftest import rod_arrays
 
     spec = get_model_spec(model_id)

@@ -197,7 +197,7 @@ def test_ctrl_c_stops_run_and_queued_runs_never_start(tmp_path, tiny):
     one_line_error(err, "interrupted", "last.pt", "resume with `meshbench --plugin")
     wait_until(lambda: not any(alive(w) for w in workers), 5, "the workers to exit")
     assert not (runs / f"{TINY}-meshodenet-smoke-s0" / "last.pt").exists()
-    from meshodenet.train import load_checkpoint
+    from meshodenet.training.train import load_checkpoint
 
     assert load_checkpoint(first / "last.pt")["epoch"] >= 1  # finished epochs are kept
     assert not list(runs.rglob("*.tmp"))
@@ -231,7 +231,7 @@ def test_ctrl_c_stops_train_and_the_message_resumes_it(tmp_path, tiny):
     _, err = p.communicate(timeout=30)
     assert time.monotonic() - t0 < 10 and p.returncode == 130, err
     msg = one_line_error(err, "last.pt keeps the last finished epoch", "--resume`")
-    from meshodenet.train import load_checkpoint
+    from meshodenet.training.train import load_checkpoint
 
     epoch = load_checkpoint(out / "last.pt")["epoch"]
     sessions = json.loads((out / "sessions.json").read_text())

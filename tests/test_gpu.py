@@ -31,7 +31,7 @@ RTOL, ATOL_REL = 1e-9, 1e-12
 def _setup(model_id: str, arrays: dict):
     """A float64 model of ``model_id`` (``smoke`` preset, seeded) and its training data, on the
     CPU."""
-    from meshodenet.data import Mesh, Trajectories
+    from meshodenet.mesh.data import Mesh, Trajectories
     from meshodenet.registry import get_model_spec
 
     spec = get_model_spec(model_id)
@@ -78,9 +78,9 @@ def compare_devices(model_id: str, arrays: dict, device: str) -> dict:
 def short_training(device: str, tmp_path) -> list:
     """Training losses of 6 epochs of MeshODENet (``smoke`` model, whole 8-interval rollouts of
     4 rods, lr 3e-3) on ``device``."""
-    from meshodenet.data import Mesh, Trajectories
+    from meshodenet.mesh.data import Mesh, Trajectories
     from meshodenet.registry import get_model_spec
-    from meshodenet.train import fit
+    from meshodenet.training.train import fit
 
     arrays = rod_arrays(B=5, T=9)
     spec = get_model_spec("meshodenet")

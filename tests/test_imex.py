@@ -1,4 +1,4 @@
-"""MeshODENet-IMEX (``meshodenet.models.imex``) and the ``youngs_feature`` option."""
+"""MeshODENet-IMEX (``meshodenet.gnn.imex``) and the ``youngs_feature`` option."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from meshodenet import reference
-from meshodenet.data import Mesh, Trajectories
-from meshodenet.features import FeatureStats
-from meshodenet.models.imex import ImexConfig, MeshODENetIMEX
-from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.gnn import reference
+from meshodenet.gnn.features import FeatureStats
+from meshodenet.gnn.imex import ImexConfig, MeshODENetIMEX
+from meshodenet.gnn.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.mesh.data import Mesh, Trajectories
 from meshodenet.registry import get_model_spec, load_model
 from tests.conftest import rod_arrays, strip_arrays
 
@@ -107,7 +107,7 @@ def test_bad_drag_and_config_are_refused():
 def test_log_youngs_feature_is_the_normalised_logarithm():
     arrays = rod_arrays(B=4)
     mesh, tr = Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays, dtype=torch.float64)
-    from meshodenet.graph import GraphTopology
+    from meshodenet.mesh.graph import GraphTopology
 
     stats = FeatureStats("line", "log").compute(GraphTopology(mesh), tr)
     y = np.log(arrays["youngs"])
@@ -116,7 +116,7 @@ def test_log_youngs_feature_is_the_normalised_logarithm():
 
 
 def test_registered_trains_resumes_and_reloads(tmp_path):
-    from meshodenet.train import fit
+    from meshodenet.training.train import fit
 
     arrays = rod_arrays(B=4)
     mesh, tr = Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays)
@@ -135,9 +135,9 @@ def test_registered_trains_resumes_and_reloads(tmp_path):
 
 @pytest.mark.parametrize("make", [rod_arrays, strip_arrays])
 def test_rest_position_feature_fast_equals_reference(make):
-    from meshodenet import fast
-    from meshodenet.models.meshodenet import MeshODENet
-    from meshodenet.network import FastField
+    from meshodenet.gnn import fast
+    from meshodenet.gnn.meshodenet import MeshODENet
+    from meshodenet.gnn.network import FastField
 
     arrays = make()
     mesh, tr = Mesh.from_arrays(arrays), Trajectories.from_arrays(arrays, dtype=torch.float64)
@@ -160,7 +160,7 @@ def test_rest_position_feature_fast_equals_reference(make):
 
 
 def test_mgn_vector_acceleration_normaliser():
-    from meshodenet.models.mgn import MeshGraphNet, MeshGraphNetConfig
+    from meshodenet.gnn.mgn import MeshGraphNet, MeshGraphNetConfig
 
     arrays = rod_arrays(B=3, T=8)
     arrays["pos"][..., 0] += 1e-4 * np.sin(np.arange(8))[None, :, None]  # some x motion
@@ -194,7 +194,7 @@ def _window_starts(model, tr, samples, gen):
 
 
 def test_release_fraction_default_draws_nothing_and_option_starts_windows_at_frame_0():
-    from meshodenet.models.meshodenet import release_count
+    from meshodenet.gnn.meshodenet import release_count
 
     arrays = rod_arrays(B=4, T=8)  # 7 intervals: windows of 2, 3 per trajectory, offset 0-1
     model, tr = _build(arrays, shooting=2)
@@ -227,7 +227,7 @@ def test_release_fraction_default_draws_nothing_and_option_starts_windows_at_fra
 
 def test_release_fraction_is_checked_and_old_runs_read_as_the_default():
     from benchmarks.suite.runs import apply_overrides, with_defaults
-    from meshodenet.models.imex import imex_presets
+    from meshodenet.gnn.imex import imex_presets
 
     for cls in (ImexConfig, MeshODENetConfig):
         for name in ("release_fraction", "frame_weight"):
@@ -300,7 +300,7 @@ def test_release_weight_adds_the_first_step_relative_to_standing_still(lam):
 
 def test_release_weight_is_checked_and_old_runs_read_as_the_default():
     from benchmarks.suite.runs import apply_overrides, with_defaults
-    from meshodenet.models.imex import imex_presets
+    from meshodenet.gnn.imex import imex_presets
 
     for cls in (ImexConfig, MeshODENetConfig):
         for bad in (-0.1, float("nan"), float("inf"), True, "0.5"):

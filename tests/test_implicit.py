@@ -1,4 +1,4 @@
-"""Implicit integrators (``meshodenet.implicit``): the coloured Jacobian, gradients by implicit
+"""Implicit integrators (``meshodenet.integrators.implicit``): the coloured Jacobian, gradients by implicit
 differentiation against finite differences and against an unrolled Newton, stiff stability,
 the Newton error, and training MeshODENet with ``backward_euler`` (the convergence orders are
 tested with the explicit schemes' in tests/test_meshodenet_integrators.py)."""
@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from meshodenet import implicit, reference
-from meshodenet.data import Mesh, Trajectories
-from meshodenet.implicit import IMPLICIT, JACOBIANS, MeshCoupling, NewtonError
-from meshodenet.integrators import INTEGRATORS, get_integrator, odesolve
-from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig, meshodenet_presets
+from meshodenet.gnn import reference
+from meshodenet.gnn.meshodenet import MeshODENet, MeshODENetConfig, meshodenet_presets
+from meshodenet.integrators import implicit
+from meshodenet.integrators.explicit import INTEGRATORS, get_integrator, odesolve
+from meshodenet.integrators.implicit import IMPLICIT, JACOBIANS, MeshCoupling, NewtonError
+from meshodenet.mesh.data import Mesh, Trajectories
 from tests.conftest import rod_arrays, strip_arrays
 
 torch.set_num_threads(1)  # tiny problems: threads only add overhead
@@ -172,7 +173,7 @@ def test_newton_failure_names_step_time_residual_and_trajectory(jacobian, monkey
 
 
 def _train_two_epochs(arrays, integrator):
-    from meshodenet.train import make_optimizer, train_epoch
+    from meshodenet.training.train import make_optimizer, train_epoch
 
     data = Trajectories.from_arrays(arrays)
     tc, mc = meshodenet_presets("smoke", Mesh.from_arrays(arrays).kind)

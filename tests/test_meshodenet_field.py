@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 import torch
 
-from meshodenet.data import DataError, Mesh, Trajectories
-from meshodenet.features import Normalizer
-from meshodenet.graph import rod_hinges
-from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.gnn.features import Normalizer
+from meshodenet.gnn.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.mesh.data import DataError, Mesh, Trajectories
+from meshodenet.mesh.graph import rod_hinges
 from tests.conftest import permuted_arrays
 
 torch.set_num_threads(1)  # tiny graphs: threads only add overhead

@@ -18,7 +18,7 @@ def _modules_after(code: str) -> set:
 
 
 def test_meshodenet_does_not_import_groundtruth():
-    mods = _modules_after("import meshodenet, meshodenet.registry, meshodenet.train")
+    mods = _modules_after("import meshodenet, meshodenet.registry, meshodenet.training.train")
     assert "torch" in mods
     assert not any(m == "groundtruth" or m.startswith("groundtruth.") for m in mods)
 

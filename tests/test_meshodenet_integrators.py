@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from meshodenet.data import Mesh, Trajectories
-from meshodenet.integrators import GRADIENT_MODES, INTEGRATORS, get_integrator, odesolve
-from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.gnn.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.integrators.explicit import GRADIENT_MODES, INTEGRATORS, get_integrator, odesolve
+from meshodenet.mesh.data import Mesh, Trajectories
 
 torch.set_num_threads(1)  # tiny problems: threads only add overhead
 
@@ -160,7 +160,7 @@ def test_adaptive_solver_gives_up_on_a_stiff_field_with_a_warning():
     NaN (training skips the step) with a warning naming the tolerances."""
     import torch
 
-    from meshodenet.integrators import MAX_STEPS_PER_INTERVAL, odesolve
+    from meshodenet.integrators.explicit import MAX_STEPS_PER_INTERVAL, odesolve
 
     calls = []
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from meshodenet.data import Mesh, Trajectories, split_indices, stratified_split, validation_split
-from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
-from meshodenet.train import TrainConfig, fit, load_checkpoint, make_optimizer, train_epoch
+from meshodenet.gnn.meshodenet import MeshODENet, MeshODENetConfig
+from meshodenet.mesh.data import Mesh, Trajectories, split_indices, stratified_split, validation_split
+from meshodenet.training.train import TrainConfig, fit, load_checkpoint, make_optimizer, train_epoch
 from tests.conftest import rod_arrays, strip_arrays
 
 torch.set_num_threads(1)  # tiny graphs: threads only add overhead
@@ -59,8 +59,8 @@ def _fit_setup(arrays):
 def test_a_window_whose_implicit_solve_fails_is_a_skipped_step(monkeypatch):
     """``NewtonError`` in a training window skips that step (counted) and the others train;
     in validation it scores inf, so that epoch is never selected."""
-    from meshodenet.implicit import NewtonError
-    from meshodenet.train import validate
+    from meshodenet.integrators.implicit import NewtonError
+    from meshodenet.training.train import validate
 
     model, train, valid, cfg = _fit_setup(rod_arrays(B=4, T=6))
     real, calls = model.training_loss, []
@@ -210,8 +210,8 @@ def test_train_config_errors_name_the_field(field, value):
 
 
 def test_presets_resolve_for_both_mesh_kinds():
-    from meshodenet.models.common import PRESETS
-    from meshodenet.models.meshodenet import meshodenet_presets
+    from meshodenet.gnn.meshodenet import meshodenet_presets
+    from meshodenet.training.presets import PRESETS
 
     for kind in ("line", "triangle"):
         for preset in PRESETS:
@@ -230,8 +230,8 @@ def test_quick_plate_presets_train_without_weight_decay_and_rods_keep_it():
     0.119 m without (no motion 0.1705 m; docs/HISTORY.md, "The in-plane plate"). The plate's
     ``quick`` presets of both models drop it and validate every epoch; the rod's keep the
     paper's weight decay."""
-    from meshodenet.models.meshodenet import meshodenet_presets
-    from meshodenet.models.mgn import mgn_presets
+    from meshodenet.gnn.meshodenet import meshodenet_presets
+    from meshodenet.gnn.mgn import mgn_presets
 
     for presets in (meshodenet_presets, mgn_presets):
         plate, rod = presets("quick", "triangle")[0], presets("quick", "line")[0]
@@ -246,8 +246,8 @@ def test_quick_plate_preset_rolls_whole_trajectories_and_imex_keeps_its_windows(
     docs/HISTORY.md, "MeshODENet's plate from whole rollouts"); 16-interval windows left it at
     0.55-0.9x standing still. MeshODENet-IMEX's plate preset keeps the windows its committed
     results were trained with."""
-    from meshodenet.models.imex import imex_presets
-    from meshodenet.models.meshodenet import meshodenet_presets
+    from meshodenet.gnn.imex import imex_presets
+    from meshodenet.gnn.meshodenet import meshodenet_presets
 
     tc, mc = meshodenet_presets("quick", "triangle")
     assert (mc.shooting, mc.hidden, mc.release_weight, mc.rest_position) == (0, 64, 0.05, True)

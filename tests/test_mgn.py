@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 import torch
 
-from meshodenet.data import Mesh, Trajectories
-from meshodenet.graph import rod_hinges
-from meshodenet.models.mgn import (
+from meshodenet.gnn.mgn import (
     PAPER_LAYERS,
     GraphNetBlock,
     MeshGraphNet,
     MeshGraphNetConfig,
     mgn_presets,
 )
-from meshodenet.train import TrainConfig, fit, make_optimizer
+from meshodenet.mesh.data import Mesh, Trajectories
+from meshodenet.mesh.graph import rod_hinges
+from meshodenet.training.train import TrainConfig, fit, make_optimizer
 from tests.conftest import permuted_arrays, rod_arrays, strip_arrays
 
 torch.set_num_threads(1)  # tiny graphs: threads only add overhead

@@ -14,9 +14,9 @@ pytest.importorskip("torch_geometric")
 
 from torch_geometric.data import Batch  # noqa: E402
 
-from meshodenet.data import Mesh, Trajectories  # noqa: E402
-from meshodenet.layers import InteractionLayer  # noqa: E402
-from meshodenet.models.mgn import GraphNetBlock  # noqa: E402
+from meshodenet.gnn.layers import InteractionLayer  # noqa: E402
+from meshodenet.gnn.mgn import GraphNetBlock  # noqa: E402
+from meshodenet.mesh.data import Mesh, Trajectories  # noqa: E402
 from tests.conftest import rod_arrays  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,7 +41,7 @@ def test_pyg_layer_equals_the_handwritten_one(cls):
 
 
 def test_pyg_model_gets_a_batch_and_keeps_clamped_nodes():
-    from meshodenet.pyg import D_EDGE, D_NODE, PyGModelConfig, PyGStepModel
+    from meshodenet.gnn.pyg import D_EDGE, D_NODE, PyGModelConfig, PyGStepModel
 
     seen = {}
 

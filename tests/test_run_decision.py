@@ -17,7 +17,7 @@ def _store(d, config=CONFIG, checkpoint=True, record=False):
     d.mkdir(exist_ok=True)
     (d / CONFIG_FILE).write_text(json.dumps(config))
     if checkpoint:
-        from meshodenet.train import CHECKPOINT_KEYS
+        from meshodenet.training.train import CHECKPOINT_KEYS
 
         torch.save({k: 0 for k in CHECKPOINT_KEYS}, d / "last.pt")
     if record:

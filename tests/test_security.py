@@ -105,7 +105,7 @@ def test_checkpoints_hold_only_tensors_and_plain_containers(sec):
 def test_resume_and_rollout_of_safe_checkpoints_are_bit_identical(sec, tmp_path, capsys):
     """2 epochs, then ``--resume`` to 3, equals 3 epochs in one go: weight for weight,
     optimizer and RNG states, history, and the rolled-out trajectories."""
-    from meshodenet.train import load_checkpoint
+    from meshodenet.training.train import load_checkpoint
 
     r = copy_run(sec.two, tmp_path / "resumed")
     assert main(sec.pl + ["train", "--case", TINY, "--preset", "smoke", "--out", str(r),
@@ -135,7 +135,7 @@ def test_resume_and_rollout_of_safe_checkpoints_are_bit_identical(sec, tmp_path,
 
 
 def test_save_checkpoint_refuses_objects_that_would_not_load_safely(tmp_path):
-    from meshodenet.train import load_checkpoint, plain, save_checkpoint
+    from meshodenet.training.train import load_checkpoint, plain, save_checkpoint
 
     with pytest.raises(TypeError, match=r"\['extra'\]\['cfg'\].*cannot be stored"):
         plain({"extra": {"cfg": SimpleNamespace(a=1)}})
@@ -214,7 +214,7 @@ def test_convert_checkpoint_only_on_request(sec, tmp_path, capsys):
     """An old-format checkpoint (numpy numbers, a dataclass) is refused; ``convert-checkpoint``
     without ``--i-trust-this-file`` only reports it; with the flag it is rewritten once and
     then loads safely with the same tensors and values."""
-    from meshodenet.train import TrainConfig, UnsafeCheckpointError, load_checkpoint
+    from meshodenet.training.train import TrainConfig, UnsafeCheckpointError, load_checkpoint
 
     r = copy_run(sec.two, tmp_path / "old")
     ck = torch.load(r / "last.pt", weights_only=True)

@@ -25,7 +25,7 @@ def _short(case, n_intervals=6):
 def _model(case, monkeypatch, **config):
     """``solver_h`` on ``case`` (registered in place of the case of the same id)."""
     from benchmarks.suite.runs import get_model_spec
-    from meshodenet.data import Mesh
+    from meshodenet.mesh.data import Mesh
 
     monkeypatch.setattr(registry, "CASES", {**registry.CASES, case.id: case})
     edges, cells, node_type = case.mesh()
@@ -99,7 +99,7 @@ def test_newton_failure_at_h_is_a_clear_error(monkeypatch):
 
 
 def test_a_mesh_of_another_case_or_none_is_refused(monkeypatch):
-    from meshodenet.data import DataError
+    from meshodenet.mesh.data import DataError
 
     case = _short(registry.CASES["rod_falling"])
     model = _model(case, monkeypatch)
@@ -108,7 +108,7 @@ def test_a_mesh_of_another_case_or_none_is_refused(monkeypatch):
     with pytest.raises(DataError, match="regenerate the data"):
         type(model)(dataclasses.replace(model.mesh, case_hash="0" * 64), model.config)
     with pytest.raises(ValueError, match="nothing to train"):
-        from meshodenet.train import TrainConfig, fit
+        from meshodenet.training.train import TrainConfig, fit
 
         fit(model, None, None, TrainConfig(epochs=1), "unused")
 

@@ -336,7 +336,7 @@ def test_runs_stored_before_val_split_read_as_random_splits():
     before it ran with the seeded random draw, and reads back so: it differs from today's
     default and equals a configuration that asks for ``random``."""
     from benchmarks.suite.runs import apply_overrides, with_defaults
-    from meshodenet.train import TrainConfig
+    from meshodenet.training.train import TrainConfig
 
     old = {"model": "mgn", "train": {"val_fraction": 0.1, "split_seed": 0}, "model_config": {}}
     assert with_defaults(old)["train"]["val_split"] == "random"

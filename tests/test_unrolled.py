@@ -8,9 +8,9 @@ import dataclasses
 import pytest
 import torch
 
-from meshodenet.data import Mesh, Trajectories
-from meshodenet.models.mgn import MeshGraphNet, MeshGraphNetConfig
-from meshodenet.models.unrolled import UnrolledMGN, UnrolledMGNConfig, unrolled_mgn_presets
+from meshodenet.gnn.mgn import MeshGraphNet, MeshGraphNetConfig
+from meshodenet.gnn.unrolled import UnrolledMGN, UnrolledMGNConfig, unrolled_mgn_presets
+from meshodenet.mesh.data import Mesh, Trajectories
 from meshodenet.registry import get_model_spec
 from tests.conftest import rod_arrays, strip_arrays
 from tests.test_mgn import Replay, true_accelerations
@@ -152,7 +152,7 @@ def test_window_longer_than_the_data_is_refused():
 
 
 def test_presets_are_mgns_with_the_window():
-    from meshodenet.models.mgn import mgn_presets
+    from meshodenet.gnn.mgn import mgn_presets
 
     for preset in ("paper", "quick", "smoke"):
         for kind in ("line", "triangle"):

@@ -27,7 +27,7 @@ def register(sub):
     _engine_arguments(p)
     p.set_defaults(func=run_engine)
     bsub = p.add_subparsers(dest="what", required=False, metavar="WHAT")
-    from benchmarks.engine import enginebench
+    from benchmarks.cost import enginebench
 
     e = bsub.add_parser("engine", help="vector field, training step, paper epoch and surrogate "
                         "vs solver, per graph and regime", description=enginebench.__doc__,
@@ -39,7 +39,7 @@ def register(sub):
 
 def _engine_arguments(e) -> None:
     """The options of ``bench engine`` (also taken by ``bench`` itself)."""
-    from benchmarks.engine import enginebench
+    from benchmarks.cost import enginebench
 
     e.add_argument("--graphs", default=",".join(enginebench.GRAPHS),
                    help="comma-separated, of " + ", ".join(enginebench.GRAPHS))
@@ -138,8 +138,8 @@ def run(args):
 
 
 def run_engine(args):
-    from benchmarks.engine import enginebench as eb
-    from benchmarks.engine import report as rp
+    from benchmarks.cost import enginebench as eb
+    from benchmarks.cost import report as rp
 
     def split(text, valid, what):
         items = [x.strip() for x in text.split(",") if x.strip()]
@@ -214,12 +214,12 @@ def _measure(mode: str, p: dict) -> dict:
 
     import torch
 
-    from benchmarks.engine import enginebench as eb
+    from benchmarks.cost import enginebench as eb
     from benchmarks.suite.registry import get_case
     from benchmarks.suite.runs import pick_device
-    from meshodenet.data import Mesh, Trajectories
-    from meshodenet.models.meshodenet import MeshODENet, MeshODENetConfig
-    from meshodenet.train import TrainConfig, make_optimizer, train_epoch
+    from meshodenet.gnn.meshodenet import MeshODENet, MeshODENetConfig
+    from meshodenet.mesh.data import Mesh, Trajectories
+    from meshodenet.training.train import TrainConfig, make_optimizer, train_epoch
 
     if p["threads"]:
         torch.set_num_threads(p["threads"])

@@ -41,7 +41,7 @@ def _files(paths) -> list[Path]:
 
 
 def run(args):
-    from meshodenet.train import UnsafeCheckpointError, convert_checkpoint, load_checkpoint
+    from meshodenet.training.train import UnsafeCheckpointError, convert_checkpoint, load_checkpoint
 
     files = _files(args.paths)
     if not args.trust:

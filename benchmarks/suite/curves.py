@@ -2,7 +2,7 @@
 
 Training with ``TrainConfig.budgets_s`` leaves in each run directory ``budgets.csv`` and
 ``budgets/best_{budget}s.pt``, the best-so-far model on validation once the run had spent that
-many CPU seconds (``meshodenet.train``). ``build_curves`` rolls every such checkpoint of a
+many CPU seconds (``meshodenet.training.train``). ``build_curves`` rolls every such checkpoint of a
 suite's runs out on the run's validation split and on the test split and writes, under
 ``RESULTS/SUITE/``:
 
@@ -73,7 +73,7 @@ def _log(msg: str) -> None:
 def read_budgets(run_dir: Path) -> pd.DataFrame | None:
     """A run's ``budgets.csv`` (None when the run has none yet); ``ValueError`` naming the
     file when it lacks a column."""
-    from meshodenet.train import BUDGET_FIELDS, BUDGETS_FILE
+    from meshodenet.training.train import BUDGET_FIELDS, BUDGETS_FILE
 
     path = run_dir / BUDGETS_FILE
     if not path.exists():
@@ -111,7 +111,7 @@ class SplitCache:
         """The split's trajectories on the model's device, after checking its mesh."""
         import torch
 
-        from meshodenet.data import Mesh, Trajectories
+        from meshodenet.mesh.data import Mesh, Trajectories
 
         arrays = self.load(config["case"], split)
         name = f"{config['case']}/{'train' if split == 'val' else split}.npz"
@@ -198,7 +198,7 @@ def _ids(spec, budget: int) -> dict:
 def _todo(suite: Suite, runs_dir: Path, seeds, only) -> list:
     """``(spec, config, budgets row, checkpoint path)`` of every budget checkpoint of the
     suite's runs present on disk."""
-    from meshodenet.train import budget_checkpoint
+    from meshodenet.training.train import budget_checkpoint
 
     todo = []
     for spec in suite.runs(seeds, only):

@@ -321,7 +321,7 @@ def long_rollout(model, arrays: dict, factor: int = FACTOR, batch_size: int = 4,
     of ``arrays`` from its initial state; ``log(message)`` after every batch."""
     import torch
 
-    from meshodenet.data import Trajectories
+    from meshodenet.mesh.data import Trajectories
 
     data = Trajectories.from_arrays(arrays, device=model.device)
     t = torch.as_tensor(long_times(arrays["t"], factor), dtype=data.t.dtype, device=data.t.device)

@@ -197,7 +197,7 @@ def stop_processes(plist, grace: float = 5.0) -> None:
 
 #: The names ``tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp")`` gives: the temporary
 #: files of the atomic writers (``groundtruth.store.atomic_write``,
-#: ``meshodenet.train._atomic_bytes``), eight random characters before ``.tmp``.
+#: ``meshodenet.training.train._atomic_bytes``), eight random characters before ``.tmp``.
 PARTIAL_WRITE = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
 
 

@@ -60,7 +60,7 @@ def register_case(case, overwrite: bool = False):
 
 # The torch side's registries, re-exported without importing torch until first used, so that
 # data commands (generate, simulate, export) run where torch is not installed.
-_TORCH_SIDE = {"MODELS": "meshodenet.registry", "INTEGRATORS": "meshodenet.integrators"}
+_TORCH_SIDE = {"MODELS": "meshodenet.registry", "INTEGRATORS": "meshodenet.integrators.explicit"}
 
 
 def __getattr__(name: str):

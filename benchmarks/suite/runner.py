@@ -313,7 +313,7 @@ def _cpu_model() -> str:
 
 
 def _n_params(run_dir: Path) -> int:
-    from meshodenet.train import load_checkpoint
+    from meshodenet.training.train import load_checkpoint
 
     ck = load_checkpoint(run_dir / "best.pt")
     return int(sum(v.numel() for v in ck["model"].values()))

@@ -164,7 +164,7 @@ def with_defaults(config: dict) -> dict:
     sets another value), except where ``LEGACY_DEFAULTS`` says what such a run used instead
     (a setting whose default changed when it was introduced). Unknown models and non-dict
     configs are returned as they are."""
-    from meshodenet.train import TrainConfig
+    from meshodenet.training.train import TrainConfig
 
     models = suite_models()
     if not isinstance(config, dict) or config.get("model") not in models:
@@ -187,7 +187,7 @@ def resolve_run(case_id: str, model_id: str, preset: str, *, data_dir=None, over
     """Everything a training run is determined by, resolved without training: the case's
     training arrays, the model spec, the preset's configs after ``overrides``, the validation
     split, and ``config`` (the JSON-ready dict written to ``config.json``)."""
-    from meshodenet.data import Mesh, validation_split
+    from meshodenet.mesh.data import Mesh, validation_split
 
     case = get_case(case_id)
     spec = get_model_spec(model_id)
@@ -264,7 +264,7 @@ def decide_run(out, config: dict, *, finished: tuple = (), ids: dict | None = No
     ``last.pt`` loads, else retrain it (or start fresh when nothing is stored). A ``last.pt``
     in the old unsafe format raises ``UnsafeCheckpointError``: it is kept for the user to
     convert, never retrained over."""
-    from meshodenet.train import CheckpointError, UnsafeCheckpointError, load_checkpoint
+    from meshodenet.training.train import CheckpointError, UnsafeCheckpointError, load_checkpoint
 
     out = Path(out)
     rec = _finished_record(out, config, finished, ids or {}) if finished else None
@@ -302,7 +302,7 @@ def _check_request(d: RunDecision, out: Path, resume: bool) -> None:
         raise FileNotFoundError(f"--resume: {out / 'last.pt'} does not exist; run without "
                                 "--resume to start this run")
     if d.problem == "bad_checkpoint":
-        from meshodenet.train import CheckpointError
+        from meshodenet.training.train import CheckpointError
 
         raise CheckpointError(f"--resume: {d.why}; this run cannot continue: {again}")
     if d.problem == "bad_config":
@@ -320,7 +320,7 @@ def train_run(case_id: str, model_id: str, preset: str, out, *, resume: bool = F
               progress: bool = True, on_epoch_end=None, evaluate: bool = True) -> dict:
     """``meshbench train``: train ``model_id`` on ``case_id`` into ``out`` (continue it with
     ``resume``); returns the summary it prints."""
-    from meshodenet.train import UnsafeCheckpointError
+    from meshodenet.training.train import UnsafeCheckpointError
 
     t_start = time.time()
     out = Path(out)
@@ -345,8 +345,8 @@ def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_di
     ``decision`` (``decide_run``) is ``resume``, else start it; returns the summary."""
     import torch
 
-    from meshodenet.data import Trajectories
-    from meshodenet.train import fit
+    from meshodenet.mesh.data import Trajectories
+    from meshodenet.training.train import fit
 
     t_start = time.time() if t_start is None else t_start
     out = Path(out)
@@ -361,7 +361,7 @@ def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_di
     elif (out / "last.pt").exists():
         raise ValueError(f"{out} already holds a run; pass --resume to continue it or choose "
                          "another --out")
-    from meshodenet.train import broadcast_parameters, distributed_rank
+    from meshodenet.training.train import broadcast_parameters, distributed_rank
 
     lead = distributed_rank()[0] == 0  # torchrun: rank 0 writes, every rank trains
     dev = pick_device(device)
@@ -397,7 +397,7 @@ def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_di
         # a session is recorded only if it trained at least one epoch (history.csv moved):
         # a failure before the first epoch left nothing behind and is not a session
         if not (history.exists() and history.stat().st_mtime_ns != before):
-            from meshodenet.train import CheckpointError
+            from meshodenet.training.train import CheckpointError
 
             if resume and isinstance(e, CheckpointError):
                 raise CheckpointError(f"--resume: {e}; this run cannot continue: start it "
@@ -427,7 +427,7 @@ def load_run_model(path: Path, device="cpu", fix: str = ""):
     file and end with ``fix`` (what to do); an ``UnsafeCheckpointError`` passes unchanged (its
     message says how to convert a trusted file)."""
     from meshodenet.registry import load_model
-    from meshodenet.train import CheckpointError, UnsafeCheckpointError
+    from meshodenet.training.train import CheckpointError, UnsafeCheckpointError
 
     suite_models()  # the checkpoint may be of a model registered by the suite
     tail = f"; {fix}" if fix else ""
@@ -469,7 +469,7 @@ def rollout_arrays(run_dir, split: str = "test", data_dir=None, checkpoint: str 
     """Roll the run's model out over a split (or ``data_file``); returns the store-format
     arrays of the prediction and metrics (position RMSE and the no-motion baseline, m).
     ``arrays``: the split's arrays when the caller has already loaded them."""
-    from meshodenet.data import Mesh, Trajectories
+    from meshodenet.mesh.data import Mesh, Trajectories
     from meshodenet.metrics import no_motion, position_rmse, rmse_per_frame
 
     config, model, ck = _load_run(Path(run_dir), checkpoint, device)

@@ -12,7 +12,7 @@ at equal accuracy.
 It is a ``TrajectoryModel`` like any other (torch tensors in and out, any ``t``), so metrics,
 figures, animations and longer rollouts use it unchanged. It learns nothing
 (``trainable = False``): ``save_untrained`` writes its run directory instead of
-``meshodenet.train.fit``, so that ``meshbench run`` records, reuses and compares it. Its
+``meshodenet.training.train.fit``, so that ``meshbench run`` records, reuses and compares it. Its
 columns: ``integrator = backward_euler``, ``grad_mode = none``.
 
 Importing this module registers ``solver_h`` in ``meshodenet.registry.MODELS``; the
@@ -32,11 +32,11 @@ import torch
 
 from benchmarks.suite.registry import get_case
 from groundtruth.implicit import ConvergenceError, simulate
-from meshodenet.data import DataError, Mesh
 from meshodenet.interface import TrajectoryModel
-from meshodenet.models.common import check_int, check_preset
+from meshodenet.mesh.data import DataError, Mesh
 from meshodenet.registry import MODELS, ModelSpec, register_model
-from meshodenet.train import FitResult, TrainConfig, model_info, save_checkpoint, write_history
+from meshodenet.training.presets import check_int, check_preset
+from meshodenet.training.train import FitResult, TrainConfig, model_info, save_checkpoint, write_history
 
 MODEL_ID = "solver_h"
 

@@ -12,7 +12,7 @@ from torch import nn
 from torch_geometric.nn import GINEConv
 
 from benchmarks.suite.suites import RunSpec, Suite, register_suite
-from meshodenet.pyg import register_pyg_model
+from meshodenet.gnn.pyg import register_pyg_model
 
 
 class GINENet(nn.Module):

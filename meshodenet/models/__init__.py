@@ -1,5 +1,3 @@
-"""The registered models, one module each (config dataclass, presets, model side by side):
-``meshodenet`` (MeshODENet), ``mgn`` (MeshGraphNet), ``imex`` (MeshODENet-IMEX),
-``unrolled`` (MeshGraphNet trained through its own rollouts), ``energy``
-(Implicit-Energy: a learned energy stepped by backward Euler); ``common`` holds what they
-share. ``meshodenet.registry.MODELS`` lists them by id."""
+"""Deprecated location of the model modules, kept for a short while: MeshODENet now lives in
+``meshodenet.gnn.meshodenet`` (``meshodenet.models.meshodenet`` re-exports it with a
+``DeprecationWarning``); every model is listed by id in ``meshodenet.registry.MODELS``."""

@@ -1,1 +1,0 @@
-"""The engine benchmark: training throughput of the implementations (``meshbench bench``)."""
