@@ -1,6 +1,6 @@
 """Our store arrays in the layout the authors' training code reads (what their preprocessing
-notebook writes to ``processed_dataset/``), restated from docs/SOURCES.md and REFERENCE.md
-section 5; none of their code is used here.
+notebook writes to ``processed_dataset/``), restated from docs/SOURCES.md ("The authors'
+data layout and training log"); none of their code is used here.
 
 Per trajectory, a dict of tensors with a leading frame axis ``T`` (static ones repeated by
 ``expand``, no copy): ``world_pos, velocity (T, N, 3)``; ``youngs (T, N, 1)`` = Y / 1e6;

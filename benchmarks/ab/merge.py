@@ -5,9 +5,10 @@ training log in one table, ``RESULTS/NAME_ab.csv`` (``core.COLUMNS``, plain CSV:
 The published log is the authors' plate training on their own data (about 155 nodes, their
 ground truth; one GPU): code ``authors_published``, its epoch e written as e + 1 (epochs
 finished), ``wall_s`` their seconds per epoch. Without a checkout it is the excerpt in
-``docs/reference/authors_plate_log.csv`` (test loss at the epochs REFERENCE.md lists); with
-``--authors-repo`` the whole ``logs/*_history.csv`` of their checkout (read as a CSV, no code
-is run). Its losses are in the same units but not on the same data: compare shapes, not values.
+``docs/reference/authors_plate_log.csv`` (test loss at the epochs docs/SOURCES.md lists, "The
+authors' data layout and training log"); with ``--authors-repo`` the whole
+``logs/*_history.csv`` of their checkout (read as a CSV, no code is run). Its losses are in
+the same units but not on the same data: compare shapes, not values.
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """A stand-in for the ``torch_scatter`` package, which the authors' code imports (PyPI's
-``torch-scatter`` is source-only; REFERENCE.md section 8): its ``scatter`` family mapped onto
-``torch_geometric.utils.scatter``. ``authors.load_authors`` registers this module as
-``sys.modules["torch_scatter"]`` inside the A/B process only, and only when the real package is
-not installed; it is never put on ``sys.path``, and ``torch_geometric`` is imported before, so
-PyG's own check for ``torch_scatter`` never sees it.
+``torch-scatter`` is source-only; docs/SOURCES.md, "The authors' MeshODENet code"): its
+``scatter`` family mapped onto ``torch_geometric.utils.scatter``. ``authors.load_authors``
+registers this module as ``sys.modules["torch_scatter"]`` inside the A/B process only, and only
+when the real package is not installed; it is never put on ``sys.path``, and ``torch_geometric``
+is imported before, so PyG's own check for ``torch_scatter`` never sees it.
 """
 
 from __future__ import annotations
