@@ -561,7 +561,7 @@ def tip_point(model: FemModel) -> np.ndarray:
 #
 # DEP on an equilateral mesh has an in-plane modulus Y h, Poisson ratio 1/3 and bending rigidity
 # D = Y h^3/12, so its strip bends like a beam with EI = Y w h^3/12 (docs/SOURCES.md, "The plate", and
-# the EI that the DEP tests of issue 3 enforce). The strip's section (length x thickness) is the
+# the EI of the plate's beam tests, tests/test_plate.py). The strip's section (length x thickness) is the
 # FEM plane; the width w is the out-of-plane direction. Cylindrical bending (load and shape
 # uniform across the width) is plane strain in that direction, with the DEP's nu = 1/3; then
 # the plane-strain modulus E/(1 - nu^2) sets both EI and EA, so E = Y (1 - nu^2) reproduces

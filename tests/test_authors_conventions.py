@@ -1,4 +1,4 @@
-"""MeshODENet's switches to the authors' code's conventions (issue 37's A/B, docs/AB.md):
+"""MeshODENet's switches to the authors' code's conventions (the A/B against their code, docs/AB.md):
 the decoder's output de-normalised with the velocity's scale (``acc_scale="velocity"``), the
 root-mean-square loss (``loss="rms"``), their feature layout (``layout="authors"``) and their
 normalisation (``normalizer="authors"``; the fast path against the reference with them:
@@ -167,7 +167,7 @@ def test_bad_settings_name_the_field(fields, name):
 
 
 def test_paper_preset_takes_the_authors_conventions_on_triangles_only():
-    """Issue 37's A/B: the plate's ``paper`` preset is the authors' code's conventions; the
+    """The A/B against their code: the plate's ``paper`` preset is the authors' code's conventions; the
     rod's keeps ours (its committed runs)."""
     from meshodenet.gnn.meshodenet import meshodenet_presets
 

@@ -331,7 +331,7 @@ def test_bench_section_times_the_model_against_the_solver(tiny_case, tmp_path):
     assert "skipped" in energy_bench(case.id, 1, "cpu", lines.append, tmp_path)
 
 
-# --- issue 38: the rod hinges' derivatives by hand, the batched solver ------------------------
+# --- the rod hinges' derivatives by hand, the batched solver -----------------------------------
 def _random_rod_hinges(n: int, seed: int = 0):
     """``n`` random, strongly bent node triples (turning angles up to about 2.5 rad) with
     random rest curvatures: ``(x (1, 3n, 3), nodes (n, 3), kappa_0 (n, 3))``."""
@@ -347,7 +347,7 @@ def _random_rod_hinges(n: int, seed: int = 0):
 def test_rod_hinge_derivatives_match_finite_differences_and_autograd():
     """``dq/dx`` and ``d2q/dx2`` of ``q = |kappa - kappa_0|^2``: analytic (``_hinge_geometry``)
     against central differences of ``q`` and of the analytic gradient (h = 1e-6) and against
-    ``torch.func`` (the derivatives before issue 38), on 64 random bent hinges."""
+    ``torch.func`` (the first version's derivatives), on 64 random bent hinges."""
     from meshodenet.energy.core import _hinge_geometry
 
     x, nodes, kap0 = _random_rod_hinges(64)

@@ -357,7 +357,7 @@ def test_smoke_preset_trains_on_a_tiny_plate_hanging(tmp_path):
 
 
 def test_exact_loss_gradient_matches_finite_differences_on_a_tiny_plate_hanging():
-    """``EnergyConfig.exact_loss_gradient`` (issue 38, item 2): the one-step loss
+    """``EnergyConfig.exact_loss_gradient``: the one-step loss
     ``|A^{-1} r|^2`` with its matrix on the parameters' graph has the central-difference
     gradient of the loss in every parameter group; the default holds ``A`` fixed, a
     different vector (on ``plate_hanging`` not even a descent direction: docs/ENERGY.md).

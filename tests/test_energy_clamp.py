@@ -1,4 +1,4 @@
-"""Implicit-Energy's ``clamp_q`` (issue 38: trained ``plate_hanging`` energies failed Newton
+"""Implicit-Energy's ``clamp_q`` (why: trained ``plate_hanging`` energies failed Newton
 where an edge was compressed beyond anything the training frames held and its learned energy
 softened there): each element MLP's input ``qhat`` saturates smoothly beyond the training
 frames' range, so far beyond it the element energy is ``c/2 qhat^p g(edge + SATURATION)``,

@@ -1,5 +1,6 @@
 """``meshodenet.energy.planar``: the batched solver's numpy evaluation of a planar mesh's edge and
-rod-hinge energy (issue 38, item 1) against the torch one it stands in for."""
+rod-hinge energy (docs/ENERGY.md, "A numpy evaluation for planar meshes") against the torch one
+it stands in for."""
 
 from __future__ import annotations
 

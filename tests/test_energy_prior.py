@@ -1,4 +1,4 @@
-"""Implicit-Energy's stiffness prior (``EnergyConfig.stiffness_prior``, issue 38 "no bad
+"""Implicit-Energy's stiffness prior (``EnergyConfig.stiffness_prior``, docs/ENERGY.md "No bad
 seed"): each element's fixed stiffness factor ``kappa_e`` keeps zero force and positive
 stiffness at rest, the ``features`` least-squares fit recovers a per-element stiffness linear
 in the static features, old configurations and checkpoints stay ``uniform``. The gradient,

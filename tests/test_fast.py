@@ -104,7 +104,7 @@ CONFIGS = [
     MeshODENetConfig(hidden=16),
     MeshODENetConfig(hidden=8, layers=2, mlp_hidden_layers=1, activation="silu"),
     MeshODENetConfig(hidden=8, layers=0, mlp_hidden_layers=0, activation="tanh"),
-    # the authors' code's conventions (issue 37's A/B): velocity-only node encoder, static
+    # the authors' code's conventions (docs/AB.md, "What differs"): velocity-only node encoder, static
     # node features at the decoder, relative positions on the edges, their output scale
     MeshODENetConfig(hidden=16, layout="authors", acc_scale="velocity", loss="rms"),
     MeshODENetConfig(hidden=8, layers=2, mlp_hidden_layers=1, layout="authors",

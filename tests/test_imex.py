@@ -324,7 +324,7 @@ def test_release_weight_is_checked_and_old_runs_read_as_the_default():
     assert imex_presets("quick", "triangle")[1].release_weight == 0
     assert all(imex_presets(p, k)[1].release_weight == 0
                for p in ("paper", "smoke") for k in ("line", "triangle"))
-    # MeshODENet: only the plate's quick preset (issue 37; docs/HISTORY.md)
+    # MeshODENet: only the plate's quick preset (docs/HISTORY.md, "MeshODENet's plate from whole rollouts")
     assert [get_model_spec("meshodenet").presets(p, k)[1].release_weight
             for p in ("paper", "quick", "smoke") for k in ("line", "triangle")] \
         == [0, 0, 0, 0.05, 0, 0]

@@ -241,7 +241,7 @@ def test_quick_plate_presets_train_without_weight_decay_and_rods_keep_it():
 
 
 def test_quick_plate_preset_rolls_whole_trajectories_and_imex_keeps_its_windows():
-    """Issue 37: MeshODENet learns the plate from whole rollouts from rest, one trajectory per
+    """MeshODENet learns the plate from whole rollouts from rest, one trajectory per
     step, with the release weighted apart (validation and test at the paper's steps:
     docs/HISTORY.md, "MeshODENet's plate from whole rollouts"); 16-interval windows left it at
     0.55-0.9x standing still. MeshODENet-IMEX's plate preset keeps the windows its committed

@@ -1,4 +1,4 @@
-"""The A/B harness (issue 37): the authors' MeshODENet code against our ``paper`` preset, on the
+"""The A/B harness: the authors' MeshODENet code against our ``paper`` preset, on the
 same training and test splits of one case, epoch by epoch, in the same units.
 
 ``python -m benchmarks.ab train --case CASE --code authors|ours --out DIR ...`` trains one

@@ -45,7 +45,7 @@ FRAME_TIME = 0.1
 AUTHORS_MAX_FRAMES = 400
 #: The authors' seed (their training script's), the default of both codes here.
 AUTHORS_SEED = 42
-#: Default epochs by mesh kind: issue 37's plate (triangles) and rod (line) A/B.
+#: Default epochs by mesh kind: the plate's (triangles) and the rod's (line) A/B (docs/AB.md).
 DEFAULT_EPOCHS = {"triangle": 25, "line": 50}
 
 

@@ -4,7 +4,7 @@ interval of a rollout (one backward-Euler step: Newton on the learned energy), o
 trajectory alone, batched by ``n_traj`` and the whole test split batched, against the case's
 own solver stepped once per interval (``solver_h``) and at its own time step (the ground
 truth). Every rollout is timed with each of ``ImplicitEnergy``'s solvers (``batched``, the
-default, and ``reference``, the solver before issue 38), interleaved in ``rounds`` rounds with
+default, and ``reference``, the first solver, kept as a reference), interleaved in ``rounds`` rounds with
 the solvers, the best round kept; the largest difference of their positions on the test split
 is reported against Newton's tolerance. Needs the case's generated data (the model's statistics
 and initial stiffness come from its training split); prints, never asserts."""
@@ -110,7 +110,7 @@ def _solver_line(r: dict) -> str:
 def energy_line(case_id: str, r: dict) -> str:
     if "skipped" in r:
         return f"implicit_energy {case_id}: skipped: {r['skipped']}"
-    if "reference" not in r:  # a result saved before issue 38: one solver
+    if "reference" not in r:  # a result saved before the batched solver: one solver
         return (f"implicit_energy {case_id}: training step {r['train_step_s']:.2f} s (batch "
                 f"{r['batch_size']}); rollout {r['single_per_interval_ms']:.1f} ms per interval, "
                 f"{r['single_per_trajectory_s']:.2f} s per trajectory alone, "

@@ -66,7 +66,7 @@ class EnergyConfig:
 #: The initial stiffness (``EnergyConfig.stiffness_prior``), both least-squares fits of the
 #: training frames' momentum balance with ``g = 1`` (``ImplicitEnergy._fit_log_stiffness``):
 STIFFNESS_PRIORS = {
-    # one stiffness per element type (a_t); the default, and the only fit before issue 38
+    # one stiffness per element type (a_t); the default, and the first fit there was
     "uniform": "one least-squares stiffness per element type",
     # each element's stiffness linear in its static features (a_t and a fixed factor kappa_e
     # per element, mean 1): on the plate the uniform fit explains 0.1 % of the balance and
@@ -92,7 +92,7 @@ SOLVERS = {
     # batch's in one pass per iteration, converged trajectories dropping out; banded
     # Cholesky in a reverse Cuthill-McKee order; the rod hinges' derivatives by hand
     "batched": "per-trajectory Newton, banded Cholesky, one MLP pass for all elements",
-    # the solver before issue 38: one Newton for the whole batch (it stops when the last
+    # the first solver, kept as a reference: one Newton for the whole batch (it stops when the last
     # trajectory converges), dense Cholesky, rod hinges by torch.func
     "reference": "one Newton for the batch, dense Cholesky, torch.func rod hinges",
 }

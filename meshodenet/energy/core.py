@@ -32,7 +32,7 @@ momentum balance (``ImplicitEnergy._fit_log_stiffness``); with a ``prior`` (``En
 by its fixed factor ``kappa_k > 0``, a function of its rest features only. The geometry's
 derivatives ``dq/dx``, ``d2q/dx2`` are analytic (``_edge_geometry``, ``_hinge_geometry``,
 ``_dihedral_geometry``; ``EnergySystem(analytic=False)`` takes the rod hinges' from
-``torch.func``, as before issue 38). ``BatchedEnergy`` evaluates the energy for a rollout's
+``torch.func``, as the first version did). ``BatchedEnergy`` evaluates the energy for a rollout's
 batched Newton solves: banded Hessian, one MLP pass for all element types. The element energies
 (``ElementEnergy``, ``clamp_q``'s saturation) live in ``meshodenet.energy.elements``.
 """

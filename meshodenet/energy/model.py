@@ -616,7 +616,7 @@ class ImplicitEnergy(TrajectoryModel):
 QUICK = {
     "line": (dict(epochs=4, lr=1e-2, lr_milestones=(3,), batch_size=32, max_batches=25,
                   weight_decay=0.0, grad_clip=1.0), dict()),
-    # issue 38 "no bad seed": the per-element least-squares stiffness, then lr 3e-3 (chosen
+    # so that no seed fails: the per-element least-squares stiffness, then lr 3e-3 (chosen
     # on validation over 5 seeds against 1e-2 and 1e-3, docs/ENERGY.md "No bad seed")
     "triangle": (dict(epochs=6, lr=3e-3, lr_milestones=(5,), batch_size=32, max_batches=50,
                       weight_decay=0.0, grad_clip=1.0), dict(stiffness_prior="features")),

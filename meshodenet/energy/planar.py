@@ -1,7 +1,7 @@
 r"""``BatchedEnergy.evaluate`` in numpy for a planar mesh of edges and rod hinges solved in its
 plane (the rod; the in-plane cantilever, whose in-plane solve has no bending term): the
 batched solver's energy, gradient and banded Hessian from the same parameters, for rollouts
-on the CPU (issue 38, item 1).
+on the CPU (docs/ENERGY.md, "A numpy evaluation for planar meshes").
 
 Why a second evaluation: the rod has 20 edges and 19 hinges, so every torch operation of
 ``BatchedEnergy.evaluate`` works on a few hundred numbers and its cost is torch's per-operation

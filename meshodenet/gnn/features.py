@@ -15,7 +15,7 @@ without a hinge (rod ends) get ``a = 0``. The paper's angle "formed by the two e
 Edge features of the directed edge ``i -> j``: ``[l0, d0 (3)] | [l, d (3)]``, rest and current
 length and unit direction of ``x_j - x_i``.
 
-``layout = "authors"`` (``LAYOUTS``; issue 37's A/B, docs/AB.md) is the authors' code's: the
+``layout = "authors"`` (``LAYOUTS``; the A/B against their code, docs/AB.md) is the authors' code's: the
 node encoder sees the velocity alone (``[] | [v (3)]``), the static node features go to the
 decoder beside the latent instead (``EncodeProcessDecode``'s ``decoder_static``), and the edge
 features hold the relative position itself, ``[l0, x0_j - x0_i] | [l, x_j - x_i]``;
@@ -98,7 +98,7 @@ def check_youngs_feature(owner: str, value) -> None:
 
 #: How the decoder's output is de-normalised into an acceleration: ``acceleration`` with the
 #: mean and std of the training accelerations (finite differences of the stored velocities over
-#: free nodes); ``velocity`` as the authors' code does (issue 37's A/B): zero mean and the
+#: free nodes); ``velocity`` as the authors' code does (docs/AB.md, "What differs"): zero mean and the
 #: velocity's std per component in their ODE's time unit of 0.1 per frame, i.e.
 #: ``std(v) / (10 dt)`` with ``dt`` the mean sampling interval (on the plate 3.4x / 5.3x the
 #: acceleration's std in y / x: the network's output moves the acceleration that much more).
@@ -111,7 +111,7 @@ def check_acc_scale(owner: str, value) -> None:
                          f"got {value!r}")
 
 
-#: How the normalisers' statistics are taken (issue 37, item 2; docs/AB.md "The out-of-plane
+#: How the normalisers' statistics are taken (docs/AB.md, "What differs" and "The out-of-plane
 #: channel"): ``ours`` (``Normalizer.set_stats``: a constant input is scaled by its mean, a
 #: nearly constant vector component is floored at ``VECTOR_FLOOR`` times its vector's largest
 #: std, a constant output has std 0, so a planar case stays exactly planar), or ``authors`` as

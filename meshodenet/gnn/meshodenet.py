@@ -107,7 +107,7 @@ class MeshODENetConfig:
       (``meshodenet.gnn.features.LAYOUTS``: ``ours``, or ``authors``, the authors' code's);
       ``normalizer``: how the statistics are taken (``meshodenet.gnn.features.NORMALIZERS``:
       ``ours``, or ``authors``, whose clamped std leaves a planar case's out-of-plane direction
-      alive). Issue 37's A/B: docs/AB.md.
+      alive). The A/B against their code: docs/AB.md.
     - ``engine``, ``message_passing``: how the network is evaluated
       (``meshodenet.training.presets.ENGINES``, ``MESSAGE_PASSING``); not the model itself.
 
@@ -191,7 +191,7 @@ class MeshODENetConfig:
 # --- presets ---------------------------------------------------------------------------------
 #: ``quick`` per mesh kind: ``(TrainConfig fields, MeshODENetConfig fields)`` over the paper's
 #: optimiser. Rods: hidden 64, windows of 10 intervals doubling every epoch up to whole
-#: rollouts, lr 1e-3 with gradient clipping, / 10 for the last epoch. Plates (issue 37): hidden
+#: rollouts, lr 1e-3 with gradient clipping, / 10 for the last epoch. Plates (whole rollouts): hidden
 #: 64, whole rollouts from rest, one trajectory per step, 7 epochs of 30 steps, lr 1e-3 with
 #: clipping, / 10 from epoch 6, no weight decay, rest coordinates, the first step after the
 #: release weighted apart (``release_weight`` 0.05). Measured and why: docs/TRAINING.md,
@@ -210,7 +210,7 @@ QUICK = {
 #: triangle meshes the authors' code's conventions (their output scale, root loss, feature
 #: layout and normaliser): with them our model is their code to float32 round-off (the same
 #: gradients from the same weights: ``python -m benchmarks.ab equiv``) and follows or
-#: beats their code's test loss on the plate, where ours drifted away from it (issue 37's A/B,
+#: beats their code's test loss on the plate, where ours drifted away from it (the A/B,
 #: docs/AB.md, "What differs" and "The out-of-plane channel"; the normaliser since
 #: 2026-12-07). Rods keep ours: their A/B followed the authors' code within 0.39-1.11x over 50
 #: epochs with them, and the committed ``paper`` rod runs were trained with them.
