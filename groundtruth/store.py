@@ -152,19 +152,55 @@ def check_shapes(d: dict, path: Path | str = "<arrays>") -> None:
         raise StoreError(f"{path}: inconsistent trajectory file: " + "; ".join(problems))
 
 
-def git_sha() -> str:
+#: the checkout whose commit the records name (the package's own; tests point it elsewhere)
+REPO = Path(__file__).resolve().parent
+#: how many hex digits of sha256(``git diff --binary HEAD``) a dirty tree's sha carries
+DIFF_HASH_LEN = 12
+
+
+def _git(repo: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", *args], capture_output=True, cwd=repo, timeout=30)
+
+
+def git_state(repo: str | os.PathLike | None = None) -> tuple[str, list[str]] | None:
+    """``(HEAD sha, paths of modified tracked files)`` of ``repo`` (default: the package's
+    checkout), or None without git or a commit. Untracked files do not count."""
+    repo = Path(REPO if repo is None else repo)
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                             cwd=Path(__file__).resolve().parent, timeout=10)
-        sha = out.stdout.strip()
+        out = _git(repo, "rev-parse", "HEAD")
+        sha = out.stdout.decode().strip()
         if out.returncode != 0 or not sha:
-            return "unknown"
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=10,
-                               cwd=Path(__file__).resolve().parent).stdout.strip()
-        return sha + ("-dirty" if dirty else "")
+            return None
+        status = _git(repo, "status", "--porcelain", "--untracked-files=no")
+        if status.returncode != 0:
+            return None
+        # "XY path" or "XY old -> new" (a rename); the path after the arrow is the one now
+        paths = [line[3:].split(" -> ")[-1]
+                 for line in status.stdout.decode(errors="replace").splitlines() if line.strip()]
+        return sha, paths
     except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def git_sha(repo: str | os.PathLike | None = None) -> str:
+    """``SHA`` of ``repo``'s HEAD (default: the package's checkout); ``SHA-dirty-HASH`` when
+    tracked files are modified, HASH the first 12 hex digits of the sha256 of
+    ``git diff --binary HEAD`` (the uncommitted change itself, staged or not); "unknown"
+    without git. ``SHA-dirty`` alone when the diff could not be read."""
+    state = git_state(repo)
+    if state is None:
         return "unknown"
+    sha, dirty = state
+    if not dirty:
+        return sha
+    try:
+        diff = _git(Path(REPO if repo is None else repo), "diff", "--binary", "--no-color",
+                    "--no-ext-diff", "--no-textconv", "HEAD")
+    except (OSError, subprocess.SubprocessError):
+        return f"{sha}-dirty"
+    if diff.returncode != 0:
+        return f"{sha}-dirty"
+    return f"{sha}-dirty-{hashlib.sha256(diff.stdout).hexdigest()[:DIFF_HASH_LEN]}"
 
 
 def library_versions() -> dict:

@@ -175,7 +175,7 @@ def test_merge_table_and_figure(tiny_case, tmp_path):
                  str(tmp_path / "ours"), "--results", str(res), "--name", "tiny"]) == 0
     df = pd.read_csv(res / "tiny_ab.csv")  # bare read_csv
     assert list(df.columns) == list(core.COLUMNS)
-    assert sorted(set(df["code"])) == ["authors", "ours", "standing_still"]
+    assert sorted(set(df["code"])) == ["authors", "ours (paper preset)", "standing_still"]
     assert (res / "figures" / "tiny_ab.png").stat().st_size > 0
     # a bisection step: ours with --set settings, labelled by them; the same one twice refused
     assert _train(tiny_case, tmp_path / "v", "ours", 1, "--set", "model.loss=rms") == 0
@@ -186,32 +186,50 @@ def test_merge_table_and_figure(tiny_case, tmp_path):
             "--results", str(res), "--name", "tiny", "--variant", str(tmp_path / "v")]
     assert main(argv) == 0
     df = pd.read_csv(res / "tiny_ab.csv")
-    assert sorted(set(df["code"])) == ["authors", "ours", "ours+loss=rms", "standing_still"]
-    v = df[df["code"] == "ours+loss=rms"]
+    assert sorted(set(df["code"])) == ["authors", "ours (paper preset)", "ours, their loss",
+                                       "standing_still"]
+    v = df[df["code"] == "ours, their loss"]
     assert list(v["epoch"]) == [0, 1, 2] and v["test_loss"].notna().all()
-    assert not np.allclose(v["train_loss"].iloc[1], df[df["code"] == "ours"]["train_loss"].iloc[1])
+    assert not np.allclose(v["train_loss"].iloc[1],
+                           df[df["code"] == "ours (paper preset)"]["train_loss"].iloc[1])
     assert main(argv + ["--variant", str(tmp_path / "v")]) == 2
 
 
 def test_variant_code_reads_the_resolved_settings():
-    """Labels come from the stored model settings, not from the ``--set`` list: the plate's
-    ``paper`` preset (the authors' conventions and normaliser) reads as the bisection run that
-    set them."""
+    """A run's code says how its stored settings differ from the case's ``paper`` preset as it
+    is now: the preset reads plainly on either mesh kind, a variant by what it changes (the
+    plate's runs of before the preset took the authors' conventions and normaliser), whatever
+    ``--set`` list gave the settings; a field a run predates counts as its default."""
     import dataclasses
 
-    from benchmarks.ab.merge import AUTHORS_CODE, variant_code
-    from meshodenet.gnn.meshodenet import meshodenet_presets
+    from benchmarks.ab.merge import PAPER_PRESET, variant_code
+    from meshodenet.gnn.meshodenet import MeshODENetConfig, meshodenet_presets
 
-    def cfg(kind, overrides=()):
-        model = dataclasses.asdict(meshodenet_presets("paper", kind)[1])
-        return {"extra": {"model": json.loads(json.dumps(model)), "overrides": list(overrides)}}
+    def cfg(kind, overrides=(), **fields):
+        model = dataclasses.replace(meshodenet_presets("paper", kind)[1], **fields)
+        return {"extra": {"model": json.loads(json.dumps(dataclasses.asdict(model))),
+                          "overrides": list(overrides)}}
 
-    assert variant_code(cfg("line")) == "ours"
-    assert variant_code(cfg("triangle")) == AUTHORS_CODE
-    assert variant_code(cfg("triangle", ["model.loss=rms", "train.lr=0.001"])) == (
-        AUTHORS_CODE + "+lr=0.001")
-    assert variant_code({**cfg("triangle"), "seed": 43}) == AUTHORS_CODE + "+seed=43"
-    assert variant_code({**cfg("line"), "seed": 42}) == "ours"
+    assert PAPER_PRESET == "ours (paper preset)"
+    assert variant_code(cfg("line"), "line") == PAPER_PRESET
+    assert variant_code(cfg("triangle"), "triangle") == PAPER_PRESET
+    assert variant_code({**cfg("line"), "seed": 42}, "line") == PAPER_PRESET
+    assert variant_code({**cfg("triangle"), "seed": 43}, "triangle") == f"{PAPER_PRESET}, seed 43"
+    assert variant_code(cfg("triangle", ["model.loss=rms", "train.lr=0.001"]),
+                        "triangle") == "ours, lr=0.001"
+    old = {"extra": {"model": {"hidden": 128}, "overrides": []}}  # stored before the switches
+    assert variant_code(old, "line") == PAPER_PRESET
+    assert variant_code(old, "triangle") == "ours, our conventions and normaliser"
+    assert variant_code(cfg("triangle", normalizer="ours"), "triangle") == "ours, our normaliser"
+    assert variant_code(cfg("triangle", layout="authors_nodes", normalizer="ours"),
+                        "triangle") == "ours, our edge features and normaliser"
+    assert variant_code(cfg("triangle", loss="mse", layout="ours", normalizer="ours"),
+                        "triangle") == "ours, our loss, features and normaliser"
+    assert variant_code(cfg("line", acc_scale="velocity", normalizer="authors", hidden=64),
+                        "line") == "ours, their output scale and normaliser, hidden=64"
+    assert variant_code(cfg("triangle", acc_scale="acceleration", loss="mse", normalizer="ours"),
+                        "triangle") == "ours, our output scale, loss and normaliser"
+    assert MeshODENetConfig().normalizer == "ours"  # the defaults are our conventions
 
 
 def test_published_log_excerpt():

@@ -86,6 +86,7 @@ def test_unreadable_file_exits_2(metrics, tmp_path, capsys):
 
 
 def test_plugin_case_registered_from_a_file_generates(tmp_path, monkeypatch, capsys):
+    monkeypatch.delenv("MESHBENCH_DATA", raising=False)  # the data must land in ./data
     plugin = tmp_path / "mycases.py"
     plugin.write_text(textwrap.dedent("""
         from benchmarks.suite.registry import register_case

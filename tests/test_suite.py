@@ -206,6 +206,7 @@ def test_changed_configuration_retrains_and_interrupted_run_resumes(smoke):
 
 def test_plugin_case_and_suite_run_end_to_end(tmp_path, monkeypatch, capsys):
     """The README's recipe: a new rod case and a suite over it, from a separate file."""
+    monkeypatch.delenv("MESHBENCH_DATA", raising=False)  # the data must land in ./data
     plugin = tmp_path / "mycases.py"
     plugin.write_text(textwrap.dedent("""
         from benchmarks.suite.registry import register_case

@@ -49,7 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--allow-smoke", action="store_true", help="merge runs on part of the data")
     m.add_argument("--variant", action="append", type=Path, default=[], metavar="DIR",
                    help="another --code ours run directory, trained with --set settings "
-                        "(a bisection step; its code reads ours+F=V); repeatable")
+                        "(a bisection step; its code names what differs from the paper "
+                        "preset); repeatable")
     m.set_defaults(func=_merge)
     e = sub.add_parser("equiv", help="the same weights in both codes: field, loss, gradient, steps")
     e.add_argument("--case", required=True)

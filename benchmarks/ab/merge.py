@@ -22,19 +22,23 @@ from benchmarks.ab import core
 REFERENCE_LOG = Path(__file__).resolve().parents[2] / "docs" / "reference" / "authors_plate_log.csv"
 #: The published log belongs to this case only (their repository has no rod log).
 PUBLISHED_CASE = "plate_cantilever"
-#: Our model with the authors' code's conventions: the ``paper`` preset on triangle meshes
-#: 2026-12-06 to 2026-12-07.
-AUTHORS_CONVENTIONS = "ours+acc_scale=velocity+loss=rms+layout=authors"
-#: ... and their normaliser (their out-of-plane channel): their code, to float32 round-off; the
-#: ``paper`` preset on triangle meshes since 2026-12-07 (``meshodenet.gnn.meshodenet.PAPER``).
-AUTHORS_CODE = AUTHORS_CONVENTIONS + "+normalizer=authors"
 #: Output names: ``plate_ab.csv``, ``rod_ab.csv`` (other cases: their id).
 NAMES = {"plate_cantilever": "plate", "rod_falling": "rod"}
+#: The ``code`` of a ``--code ours`` run with the case's ``paper`` preset as it is now.
+PAPER_PRESET = "ours (paper preset)"
+#: The settings in which the authors' code differs from our model (docs/AB.md, "What
+#: differs"): their name in a label and whether a model's settings take the authors' one.
+CONVENTIONS = {"output scale": lambda m: m["acc_scale"] == "velocity",
+               "loss": lambda m: m["loss"] == "rms",
+               "node features": lambda m: m["layout"] in ("authors", "authors_nodes"),
+               "edge features": lambda m: m["layout"] in ("authors", "authors_edges"),
+               "normaliser": lambda m: m["normalizer"] == "authors"}
+CONVENTION_FIELDS = ("acc_scale", "loss", "layout", "normalizer")
+#: Legend, colour and line style of the figure's curves (others: their code, further colours).
 CURVES = {"authors": ("their code, our data", "C3", "-"),
-          "ours": ("ours, our conventions (rods' paper preset)", "C0", "-"),
-          AUTHORS_CONVENTIONS: ("ours, their conventions but our normaliser", "C2", "-"),
-          AUTHORS_CODE: ("ours, their conventions and normaliser (plates' paper preset)", "C9",
-                         "-"),
+          "ours, our conventions and normaliser": (None, "C0", "-"),
+          "ours, our normaliser": (None, "C2", "-"),
+          PAPER_PRESET: (None, "C9", "-"),
           "authors_published": ("their code, their data (published log)", "C7", "--")}
 
 
@@ -85,43 +89,68 @@ def published_rows(case: str, repo=None) -> list:
     return rows
 
 
-def variant_code(cfg: dict) -> str:
-    """The ``code`` of a ``--code ours`` run in the merged table: ``ours`` for our model with
-    ``MeshODENetConfig``'s defaults (our conventions; the ``paper`` preset on rods),
-    ``ours+F=V+...`` with the model settings that differ from them, in the config's field order,
-    and the ``--set train.`` settings (``model.acc_scale=velocity`` reads
-    ``ours+acc_scale=velocity``; the plate's ``paper`` preset, the authors' conventions,
-    ``ours+acc_scale=velocity+loss=rms+layout=authors+normalizer=authors``), and ``+seed=S``
-    for a seed other than the authors' 42. From the resolved settings the run stored, so a label
-    does not change when a preset does."""
-    from meshodenet.gnn.meshodenet import MeshODENetConfig
+def variant_code(cfg: dict, kind: str) -> str:
+    """The ``code`` of a ``--code ours`` run in the merged table, named by how it differs from
+    the case's ``paper`` preset as it is now (``kind``: the mesh kind, ``line`` or
+    ``triangle``): ``ours (paper preset)`` without a difference; else ``ours, `` and what
+    differs: each of the authors' conventions the run takes where the preset does not, or
+    leaves where the preset takes it (``their normaliser`` / ``our normaliser``; ``our
+    conventions`` for all four of output scale, loss, node and edge features), other model
+    settings and the ``--set train.`` settings as ``F=V``; and ``seed S`` for a seed other than
+    the authors' 42. From the resolved settings the run stored, so that a run keeps its code
+    whatever ``--set`` list gave them."""
+    from benchmarks.suite.runs import get_model_spec
 
     extra = cfg.get("extra") or {}
     model = extra.get("model") or {}
-    default = core.jsonable(MeshODENetConfig())
-    sets = [f"{k}={model[k]}" for k in default if k in model and model[k] != default[k]]
-    sets += [o.split(".", 1)[-1] for o in extra.get("overrides") or [] if o.startswith("train.")]
-    if cfg.get("seed", core.AUTHORS_SEED) != core.AUTHORS_SEED:
-        sets.append(f"seed={cfg['seed']}")
-    return "+".join(["ours", *sets])
+    config = get_model_spec("meshodenet").presets("paper", kind)[1]
+    preset = core.jsonable(config)
+    # a field the run predates resolves to its default, with which it was trained
+    have = {**core.jsonable(type(config)()), **{k: v for k, v in model.items() if k in preset}}
+    words = {"our": [], "their": []}
+    for name, takes_theirs in CONVENTIONS.items():
+        if takes_theirs(have) != takes_theirs(preset):
+            words["their" if takes_theirs(have) else "our"].append(name)
+    parts = []
+    for whose, names in words.items():
+        if set(names) >= {"output scale", "loss", "node features", "edge features"}:
+            names = ["conventions"] + [n for n in names if n == "normaliser"]
+        elif {"node features", "edge features"} <= set(names):
+            names = [n for n in names if n != "edge features"]
+            names[names.index("node features")] = "features"
+        if names:
+            parts.append(f"{whose} " + (names[0] if len(names) == 1 else
+                                        ", ".join(names[:-1]) + " and " + names[-1]))
+    parts += [f"{k}={have[k]}" for k in preset
+              if k not in CONVENTION_FIELDS and have[k] != preset[k]]
+    parts += [o.split(".", 1)[-1] for o in extra.get("overrides") or [] if o.startswith("train.")]
+    seed = [f"seed {cfg['seed']}"] if cfg.get("seed", core.AUTHORS_SEED) != core.AUTHORS_SEED else []
+    return ", ".join([PAPER_PRESET if not parts else "ours", *parts, *seed])
+
+
+def mesh_kind(case: str) -> str:
+    """Rods are line meshes, every other case a triangle mesh (as ``train``'s epochs)."""
+    from benchmarks.suite.registry import get_case
+
+    return "line" if get_case(case).kind == "rod" else "triangle"
 
 
 def merge(case: str, authors_dir, ours_dir, results="results/paper", repo=None,
           allow_smoke: bool = False, name: str | None = None, variants=()) -> Path:
     """Write ``RESULTS/NAME_ab.csv`` and ``RESULTS/figures/NAME_ab.png``; returns the CSV.
-    ``variants``: more ``--code ours`` run directories (``--set`` settings: ``variant_code``)."""
+    ``variants``: more ``--code ours`` run directories (their ``code``: ``variant_code``)."""
     from meshodenet.training.train import write_rows
 
     a_rows, a_cfg = read_run(authors_dir, "authors", case, allow_smoke)
     runs = [(ours_dir, *read_run(ours_dir, "ours", case, allow_smoke))]
     runs += [(d, *read_run(d, "ours", case, allow_smoke)) for d in variants]
-    rows, codes = [r for r in a_rows if r["code"] == "authors"], {}
+    rows, codes, kind = [r for r in a_rows if r["code"] == "authors"], {}, mesh_kind(case)
     still = [r for r in a_rows if r["code"] == "standing_still"]
     for d, o_rows, o_cfg in runs:
         if a_cfg.get("data") != o_cfg.get("data"):
             raise core.ABError(f"the runs were fed different data: {a_cfg.get('data')} "
                                f"({authors_dir}) and {o_cfg.get('data')} ({d})")
-        code = variant_code(o_cfg)
+        code = variant_code(o_cfg, kind)
         if code in codes:
             raise core.ABError(f"{d} and {codes[code]} are both {code!r}: merge one of them")
         codes[code] = d
@@ -152,8 +181,9 @@ def figure(rows: list, path: Path, case: str, data: dict) -> None:
     more = sorted({r["code"] for r in rows} - set(CURVES) - {"standing_still"})
     free = [c for c in (f"C{i}" for i in range(10)) if c not in ("C0", "C2", "C3", "C7", "C9")]
     for i, code in enumerate(more):  # bisection runs: ours with --set settings
-        curves[code] = (code, free[i % len(free)], "-")
+        curves[code] = (None, free[i % len(free)], "-")
     for code, (label, color, style) in curves.items():
+        label = label or code
         sel = sorted((r for r in rows if r["code"] == code), key=lambda r: r["epoch"])
         if not sel:
             continue

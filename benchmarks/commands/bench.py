@@ -17,6 +17,8 @@ import multiprocessing as mp
 import os
 import sys
 
+from benchmarks.suite.provenance import add_allow_dirty, refuse_dirty
+
 MODES = ("direct", "checkpoint", "adjoint")
 
 
@@ -82,6 +84,7 @@ def _engine_arguments(e) -> None:
                    help="print the table of a saved result instead of measuring")
     e.add_argument("--compare-impl", default=None,
                    help="implementation of BASELINE.json to compare with (default its first)")
+    add_allow_dirty(e)
 
 
 def _train_arguments(bsub) -> None:
@@ -100,6 +103,7 @@ def _train_arguments(bsub) -> None:
     t.add_argument("--device", default="auto")
     t.add_argument("--data-dir", default=None)
     t.add_argument("--json", default=None, help="also write the results to this JSON file")
+    add_allow_dirty(t)
     t.set_defaults(func=run)
 
 
@@ -116,6 +120,8 @@ def run(args):
     from benchmarks.suite.runs import pick_device
 
     pick_device(args.device)  # a bad --device fails before the first child starts
+    if args.json:
+        refuse_dirty(args.json, args.allow_dirty, file=True)
     params = {k: getattr(args, k) for k in ("case", "trajectories", "frames", "hidden",
                                             "integrator", "batch_size", "max_batches",
                                             "threads", "device", "data_dir")}
@@ -177,6 +183,8 @@ def run_engine(args):
     only = args.energy_only
     if only and args.no_energy:
         raise ValueError("--energy-only and --no-energy exclude each other; drop one")
+    if args.json:
+        refuse_dirty(args.json, args.allow_dirty, file=True)
     res = eb.run_bench([] if only else graphs, regimes, impls, threads=args.threads,
                        rounds=args.rounds, budget_s=args.budget,
                        train_intervals=args.train_intervals, epoch_steps=args.epoch_steps,

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import sys
 
+from benchmarks.suite.provenance import add_allow_dirty, refuse_dirty
+
 
 def register(sub):
     p = sub.add_parser("crosscheck", help="compare a case's solver with the scikit-fem continuum",
@@ -20,6 +22,7 @@ def register(sub):
     p.add_argument("--youngs", type=float, default=None,
                    help="Young's modulus, Pa (default: the case's reference modulus)")
     p.add_argument("--no-progress", action="store_true")
+    add_allow_dirty(p)
     p.set_defaults(func=run)
 
 
@@ -29,6 +32,7 @@ def run(args):
 
     youngs = None if args.youngs is None else check_youngs(args.youngs)
     check = get_crosscheck(args.case, youngs)
+    refuse_dirty(args.out_dir, args.allow_dirty)
     res = [check.default] if args.default_only else None
     say = None if args.no_progress else (lambda m: print(m, file=sys.stderr, flush=True))
     rows = run_crosscheck(check, args.out_dir, res, progress=say)

@@ -8,6 +8,8 @@ evaluated and unchanged are not recomputed. See docs/SUITE.md, "Learning curves"
 
 from __future__ import annotations
 
+from benchmarks.suite.provenance import add_allow_dirty, refuse_dirty
+
 
 def register(sub):
     p = sub.add_parser("curves", help="learning curves (RMSE against training CPU time) from "
@@ -21,6 +23,7 @@ def register(sub):
     p.add_argument("--data-dir", default=None)
     p.add_argument("--device", default="cpu", help="cpu (default), cuda or auto")
     p.add_argument("--no-figures", action="store_true")
+    add_allow_dirty(p)
     p.set_defaults(func=run)
 
 
@@ -29,9 +32,11 @@ def run(args):
     from benchmarks.suite.runs import pick_device
     from benchmarks.suite.suites import get_suite
 
-    out = build_curves(get_suite(args.suite), results_dir=args.results, runs_dir=args.runs_dir,
+    suite, device = get_suite(args.suite), pick_device(args.device)
+    refuse_dirty(args.results, args.allow_dirty)
+    out = build_curves(suite, results_dir=args.results, runs_dir=args.runs_dir,
                        data_dir=args.data_dir, seeds=args.seeds, only=args.only,
-                       device=pick_device(args.device), figures=not args.no_figures)
+                       device=device, figures=not args.no_figures)
     print(out["curves"])
     for path in out.get("figures", []):
         print(path)

@@ -9,6 +9,8 @@ the authors' digitized tip curve, ``docs/reference/authors_plate_tip.csv``).
 
 from __future__ import annotations
 
+from benchmarks.suite.provenance import add_allow_dirty, refuse_dirty
+
 MEASUREMENTS = ("convergence", "frequency", "damping", "all")
 
 
@@ -18,12 +20,14 @@ def register(sub):
     p.add_argument("what", nargs="?", default="all", choices=MEASUREMENTS,
                    help="which measurement (default: all)")
     p.add_argument("--out-dir", default="results/plate_fidelity", help="output directory")
+    add_allow_dirty(p)
     p.set_defaults(func=run)
 
 
 def run(args):
     from benchmarks.validation.plate_fidelity import run_fidelity
 
+    refuse_dirty(args.out_dir, args.allow_dirty)
     run_fidelity(args.what, args.out_dir)
     print(f"wrote {args.out_dir}")
     return 0

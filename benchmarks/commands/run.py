@@ -15,6 +15,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from benchmarks.suite.provenance import add_allow_dirty, refuse_dirty
+
 TOLERANCE_FILE = "tolerance.csv"
 
 
@@ -55,6 +57,7 @@ def register(sub):
                    help="one relative tolerance for --compare-with instead of the per-row "
                         "tolerances of DIR/SUITE/tolerance.csv (without that file: the "
                         "suite's compare_rtol)")
+    add_allow_dirty(p)
     p.set_defaults(func=run)
 
 
@@ -78,6 +81,8 @@ def run(args):
                              "would be compared with themselves")
     from benchmarks.suite.plugins import loaded_files
     from benchmarks.suite.runner import rewrite_tables, run_suite
+
+    refuse_dirty([args.results, args.runs_dir], args.allow_dirty)
 
     if args.tables_only:
         paths = rewrite_tables(args.results, suite, data_dir=args.data_dir,

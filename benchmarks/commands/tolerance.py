@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from benchmarks.suite.provenance import add_allow_dirty, refuse_dirty
+
 
 def register(sub):
     p = sub.add_parser("tolerance", help="derive a suite's comparison tolerances from its seeds",
@@ -22,6 +24,7 @@ def register(sub):
                    help="standard deviations of the band (default 3)")
     p.add_argument("--floor", type=float, default=None,
                    help="smallest relative tolerance (default 0.01)")
+    add_allow_dirty(p)
     p.set_defaults(func=run)
 
 
@@ -42,6 +45,7 @@ def run(args):
     if not src.exists():
         raise FileNotFoundError(f"{src}: no results; create them with `meshbench run --suite "
                                 f"{suite.name} --seeds 3 --results {args.results}`")
+    refuse_dirty(args.results, args.allow_dirty)
     try:
         tol = C.derive_tolerances(C.read_csv(src), factor, floor, name=str(src))
     except C.CompareError as e:
