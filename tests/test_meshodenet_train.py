@@ -243,15 +243,15 @@ def test_quick_plate_presets_train_without_weight_decay_and_rods_keep_it():
 def test_quick_plate_preset_rolls_whole_trajectories_and_imex_keeps_its_windows():
     """MeshODENet learns the plate from whole rollouts from rest, one trajectory per
     step, with the release weighted apart (validation and test at the paper's steps:
-    docs/HISTORY.md, "MeshODENet's plate from whole rollouts"); 16-interval windows left it at
-    0.55-0.9x standing still. MeshODENet-IMEX's plate preset keeps the windows its committed
-    results were trained with."""
+    docs/HISTORY.md, "MeshODENet's plate from whole rollouts" and "The plate's quick run at a
+    third of its cost"); 16-interval windows left it at 0.55-0.9x standing still.
+    MeshODENet-IMEX's plate preset keeps the windows its committed results were trained with."""
     from meshodenet.gnn.imex import imex_presets
     from meshodenet.gnn.meshodenet import meshodenet_presets
 
     tc, mc = meshodenet_presets("quick", "triangle")
-    assert (mc.shooting, mc.hidden, mc.release_weight, mc.rest_position) == (0, 64, 0.05, True)
-    assert (tc.epochs, tc.lr_milestones, tc.batch_size, tc.max_batches) == (7, (5,), 1, 30)
+    assert (mc.shooting, mc.hidden, mc.release_weight, mc.rest_position) == (0, 48, 0.05, True)
+    assert (tc.epochs, tc.lr_milestones, tc.batch_size, tc.max_batches) == (5, (4,), 1, 24)
     assert meshodenet_presets("quick", "line")[1].release_weight == 0
     itc, imc = imex_presets("quick", "triangle")
     assert (imc.shooting, imc.hidden, imc.release_weight, imc.release_fraction) == (16, 32, 0, 0.05)

@@ -140,8 +140,8 @@ register_suite(Suite(
     "quick", "the paper's two cases, MeshODENet, MGN, MeshODENet-IMEX, Implicit-Energy and "
     "Implicit-Energy with a learned dissipation, "
     "quick preset, and the case's solver at the sampling interval (solver_h, a reference "
-    "row): data and one seed took 34.6 min from a fresh clone (tox -e bench, --jobs 2) on a "
-    "shared 2-core CPU (docs/RESULTS.md)",
+    "row); the main job (data and one seed, tox -e bench, --jobs 2) from a fresh clone on a "
+    "2-core CPU: docs/RESULTS.md, 'How the committed results were produced'",
     _quick_models("rod_falling", "quick") + _solver("rod_falling")
     + _quick_models("plate_cantilever", "quick") + _solver("plate_cantilever"),
     compare_rtol=0.05))

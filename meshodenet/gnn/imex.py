@@ -178,8 +178,8 @@ class MeshODENetIMEX(MeshODENet):
 #: evaluations per optimizer step), the learning rate divided by 10 for the last 8, frames
 #: weighted by the inverse square root of their no-motion error (``frame_weight``) and the
 #: first step after the release weighted apart (``release_weight``); plates: windows of 16
-#: intervals throughout (MeshODENet's plate protocol before it moved to whole rollouts, issue
-#: 37: hidden 32, 24 epochs of 24 steps of 4, / 10 from epoch 19), 5 % of them started at the
+#: intervals throughout (MeshODENet's plate protocol before it moved to whole rollouts:
+#: hidden 32, 24 epochs of 24 steps of 4, / 10 from epoch 19), 5 % of them started at the
 #: release (``release_fraction``); both: the nodes' rest coordinates as features
 #: (``rest_position``).
 QUICK_CHANGES = {
