@@ -251,7 +251,7 @@ def test_quick_plate_preset_rolls_whole_trajectories_and_imex_keeps_its_windows(
 
     tc, mc = meshodenet_presets("quick", "triangle")
     assert (mc.shooting, mc.hidden, mc.release_weight, mc.rest_position) == (0, 48, 0.05, True)
-    assert (tc.epochs, tc.lr_milestones, tc.batch_size, tc.max_batches) == (5, (4,), 1, 24)
+    assert (tc.epochs, tc.lr_milestones, tc.batch_size, tc.max_batches) == (5, (), 1, 24)
     assert meshodenet_presets("quick", "line")[1].release_weight == 0
     itc, imc = imex_presets("quick", "triangle")
     assert (imc.shooting, imc.hidden, imc.release_weight, imc.release_fraction) == (16, 32, 0, 0.05)
