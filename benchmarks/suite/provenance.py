@@ -83,9 +83,11 @@ def refuse_dirty(outs, allow_dirty: bool = False, file: bool = False,
 
 
 def _toplevel(repo: Path) -> Path | None:
+    from groundtruth import store
+
     try:
-        out = subprocess.run(["git", "rev-parse", "--show-toplevel"], capture_output=True,
-                             text=True, cwd=repo, timeout=30)
+        out = store._git(repo, "rev-parse", "--show-toplevel")
     except (OSError, subprocess.SubprocessError):
         return None
-    return Path(out.stdout.strip()) if out.returncode == 0 and out.stdout.strip() else None
+    top = out.stdout.decode().strip()
+    return Path(top) if out.returncode == 0 and top else None
