@@ -183,12 +183,14 @@ register_suite(Suite(
 #: 2 h (``max_cpu_s``: a run fits in one working session of the shared machine, whose disk a
 #: later session may not find), epochs beyond reach so that the CPU budget ends training. The learning
 #: rate keeps the quick preset's fixed-epoch milestones: a schedule that does not depend on the
-#: final budget, under which each curve run's first epochs are its quick run's.
+#: final budget, under which each curve run's first epochs are its quick run's. Every epoch is
+#: validated (``quick`` skips some where it is cheaper to), so that each budget checkpoint is
+#: the best validated model up to its budget.
 CURVE_BUDGETS_S = (120, 300, 900, 2700)
 CURVE_MAX_CPU_S = 7200
 CURVE_OVERRIDES = ("train.epochs=1000000",
                    "train.budgets_s=" + ",".join(str(b) for b in CURVE_BUDGETS_S),
-                   f"train.max_cpu_s={CURVE_MAX_CPU_S}")
+                   f"train.max_cpu_s={CURVE_MAX_CPU_S}", "train.val_every=1")
 
 register_suite(Suite(
     "curves", "learning curves: every learned (case, model) of quick, seed 0, trained to 2 h of one "

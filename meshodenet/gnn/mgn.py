@@ -390,7 +390,7 @@ QUICK_MGN = {
              dict(hidden=64, layers=15, acc_norm="vector", noise=0.03, youngs_feature="log",
                   rest_position=True)),
     "triangle": (dict(epochs=6, lr=1e-3, lr_milestones=(5,), batch_size=32, max_batches=48,
-                      weight_decay=0.0),
+                      weight_decay=0.0, val_every=3),
                  dict(hidden=32, layers=30, rest_position=True)),
 }
 
