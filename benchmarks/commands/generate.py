@@ -8,7 +8,8 @@ from benchmarks.suite import registry
 def register(sub):
     p = sub.add_parser("generate", help="generate ground-truth trajectories of registered cases",
                        description=__doc__)
-    p.add_argument("cases", nargs="*", metavar="CASE", help="case ids (see --list)")
+    p.add_argument("cases", nargs="*", metavar="CASE",
+                   help="case ids (see --list); CASE@rN: CASE on a mesh N times finer")
     p.add_argument("--all", action="store_true", help="every registered case")
     p.add_argument("--list", action="store_true", help="list the registered cases and exit")
     p.add_argument("--data-dir", default=None,
@@ -24,8 +25,9 @@ def run(args):
 
     if args.list:
         for cid, case in sorted(registry.CASES.items()):
+            finer = f", {cid}@rN" if callable(getattr(case, "refined", None)) else ""
             print(f"{cid:24s} {type(case).__name__}: {case.n_train} train + {case.n_test} test, "
-                  f"{case.n_frames} frames")
+                  f"{case.n_frames} frames{finer}")
         return 0
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")

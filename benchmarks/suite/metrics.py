@@ -48,7 +48,9 @@ PER_COORDINATE = 1.0 / np.sqrt(3.0)
 def table_steps(case_id: str, n_frames: int) -> tuple:
     """The steps of a case's table: the paper's for its two cases, the case's own
     ``table_steps`` attribute for a registered case that has one, else step 1 and five
-    evenly spaced steps up to the last frame."""
+    evenly spaced steps up to the last frame. A refined case ``CASE@rN`` (the same save times)
+    has the steps of ``CASE``."""
+    case_id = case_id.partition("@")[0]
     if case_id in PAPER_STEPS:
         return PAPER_STEPS[case_id]
     from benchmarks.suite.registry import CASES

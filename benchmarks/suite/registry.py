@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-from groundtruth.cases import InPlanePlateCase, PlateCase, RodCase
+from groundtruth.cases import InPlanePlateCase, PlateCase, RodCase, split_resolution_id
 from meshbench_registry import RegistryError, lookup
 
 __all__ = ["CASES", "RegistryError", "get_case", "lookup", "register_case", "safe_id"]
@@ -30,8 +30,9 @@ CASES: dict = {
 
 
 #: An id that names a file or directory (case, model, preset, suite, run tag, ...): letters,
-#: digits, '_', '.', '-'; not starting with '.', so never '..' or a hidden file.
-SAFE_ID = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
+#: digits, '_', '.', '-', '@' (a refined case, ``CASE@rN``); not starting with '.' or '@',
+#: so never '..' or a hidden file; no path separator.
+SAFE_ID = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.@-]*")
 
 
 def safe_id(value, field: str) -> str:
@@ -39,19 +40,45 @@ def safe_id(value, field: str) -> str:
     become directory and file names under the data, runs and results directories, and one
     with a path separator or '..' could write outside them."""
     if not isinstance(value, str) or not SAFE_ID.fullmatch(value):
-        raise ValueError(f"{field} must be an id of letters, digits, '_', '.' and '-' that does "
-                         f"not start with '.' (it names a directory), got {value!r}")
+        raise ValueError(f"{field} must be an id of letters, digits, '_', '.', '-' and '@' that "
+                         f"does not start with '.' or '@' (it names a directory), got {value!r}")
     return value
 
 
+#: Refined cases built by ``get_case``: ``(base id, r) -> (base case, refined case)``; an entry
+#: whose base case is no longer the registered one (``register_case(..., overwrite=True)``) is
+#: rebuilt.
+_REFINED: dict = {}
+
+
 def get_case(case_id: str):
-    return lookup(CASES, case_id, "case")
+    """The registered case ``case_id``, or for ``CASE@rN`` the case ``CASE`` refined N times
+    (``CASE.refined(N)``, built once and cached; ``CASE@r1`` is ``CASE``; docs/SCALE.md).
+    ``RegistryError`` for an unknown ``CASE``, ``ValueError`` for a bad N or a case that
+    cannot be refined."""
+    if not isinstance(case_id, str) or "@" not in case_id:
+        return lookup(CASES, case_id, "case")
+    base_id, r = split_resolution_id(case_id)
+    base = lookup(CASES, base_id, "case")
+    if r == 1:
+        return base
+    hit = _REFINED.get((base_id, r))
+    if hit is None or hit[0] is not base:
+        if not callable(getattr(base, "refined", None)):
+            raise ValueError(f"case {base_id!r} cannot be refined ({case_id!r} asks for "
+                             f"resolution {r}): its class {type(base).__name__} defines no "
+                             "refined(r) method (docs/SCALE.md)")
+        hit = _REFINED[(base_id, r)] = (base, base.refined(r))
+    return hit[1]
 
 
 def register_case(case, overwrite: bool = False):
-    """Add a case object (with an ``id``, a ``safe_id``) to ``CASES``; refuses to replace
-    one silently."""
+    """Add a case object (with an ``id``, a ``safe_id`` without '@') to ``CASES``; refuses to
+    replace one silently."""
     safe_id(getattr(case, "id", None), "case id")
+    if "@" in case.id:
+        raise ValueError(f"case id {case.id!r}: '@' marks a derived id (CASE@rN, made by "
+                         "get_case from the registered CASE); register the base case")
     if case.id in CASES and not overwrite:
         raise ValueError(f"case id {case.id!r} is already registered; pass overwrite=True")
     CASES[case.id] = case

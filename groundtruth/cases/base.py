@@ -7,6 +7,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import re
 
 import numpy as np
 
@@ -16,6 +17,39 @@ from groundtruth.implicit import NewtonSettings
 # Bump when a solver change alters the trajectories of an unchanged case: invalidates caches.
 SOLVER_VERSION = 1
 SPLITS = ("train", "test")
+
+#: A derived case id ``CASE@rN``: the registered case ``CASE`` on a mesh N times finer
+#: (``refined(N)``, docs/SCALE.md). ``CASE@r1`` is ``CASE`` itself.
+RESOLUTION_MARK = "@r"
+
+
+def check_resolution(r, where: str = "resolution") -> int:
+    """A refinement factor: an int >= 1, else ``ValueError`` naming ``where`` and the value."""
+    if isinstance(r, bool) or not isinstance(r, int) or r < 1:
+        raise ValueError(f"{where} must be an int >= 1 (1: the case itself), got {r!r}")
+    return r
+
+
+def resolution_id(base_id: str, r: int) -> str:
+    """The id of case ``base_id`` at resolution ``r``: ``base_id`` for 1, else ``base_id@rN``."""
+    return base_id if check_resolution(r) == 1 else f"{base_id}{RESOLUTION_MARK}{r}"
+
+
+def split_resolution_id(case_id: str) -> tuple[str, int]:
+    """``("plate_cantilever", 8)`` for ``"plate_cantilever@r8"``, ``(case_id, 1)`` for an id
+    without '@'. ``ValueError`` naming the id and the bad resolution for anything after '@'
+    that is not ``rN`` with N a positive integer written without leading zeros."""
+    base, at, suffix = case_id.partition("@")
+    if not at:
+        return case_id, 1
+    text = suffix[1:] if suffix.startswith("r") else suffix
+    if not suffix.startswith("r") or not re.fullmatch(r"[0-9]+", text) or int(text) < 1:
+        raise ValueError(f"case id {case_id!r}: the resolution after '{RESOLUTION_MARK}' must "
+                         f"be a positive integer (CASE{RESOLUTION_MARK}N, N >= 1), got {text!r}")
+    if text != str(int(text)):
+        raise ValueError(f"case id {case_id!r}: write the resolution without leading zeros, "
+                         f"{resolution_id(base, int(text))!r}")
+    return base, int(text)
 
 
 def _check_positive(obj, *names):
@@ -77,9 +111,19 @@ class CaseBase:
     kind = "base"
 
     def _check_common(self):
-        if not isinstance(self.id, str) or not self.id.replace("_", "").isalnum() or not self.id:
-            raise ValueError(f"{type(self).__name__}.id must be a snake_case identifier, "
-                             f"got {self.id!r}")
+        name = type(self).__name__
+        if not isinstance(self.id, str):
+            raise ValueError(f"{name}.id must be a snake_case identifier, got {self.id!r}")
+        base, r = split_resolution_id(self.id)
+        if not base.replace("_", "").isalnum():
+            raise ValueError(f"{name}.id must be a snake_case identifier (with '@rN' for a "
+                             f"refined case), got {self.id!r}")
+        _check_ints(self, resolution=1)
+        if self.id != resolution_id(base, self.resolution):
+            raise ValueError(f"{name}.id {self.id!r} does not match resolution="
+                             f"{self.resolution!r}: a case at resolution N > 1 has the id "
+                             f"CASE{RESOLUTION_MARK}N, one at 1 no suffix (make it with "
+                             "refined(N))")
         _check_positive(self, "t_end", "save_dt", "dt", "newton_rtol")
         if self.dt > self.save_dt * (1 + 1e-9):
             raise ValueError(f"{type(self).__name__}.dt ({self.dt!r}) must not exceed "
@@ -117,8 +161,30 @@ class CaseBase:
     def solver_settings(self) -> NewtonSettings:
         return NewtonSettings(dt=self.dt, rtol=self.newton_rtol)
 
+    #: How many times finer than the registered case the mesh is (``refined``); a field of
+    #: the cases that can be refined, this default for the others.
+    resolution = 1
+
+    def _check_refinable(self, r) -> int:
+        """``r`` checked for ``refined(r)``; only a case at resolution 1 is refined."""
+        r = check_resolution(r, f"{type(self).__name__}.refined: the resolution r")
+        if r > 1 and self.resolution != 1:
+            base = split_resolution_id(self.id)[0]
+            raise ValueError(f"case {self.id!r} is already refined (resolution "
+                             f"{self.resolution}); refine its base case instead: "
+                             f"{resolution_id(base, self.resolution * r)!r}")
+        return r
+
+    def _refined_copy(self, r: int, **fields):
+        """``dataclasses.replace`` with the id ``CASE@rN``, ``resolution = r`` and ``fields``."""
+        return dataclasses.replace(self, id=resolution_id(self.id, r), resolution=r, **fields)
+
     def to_dict(self) -> dict:
+        """The parameters, ``kind`` added; ``resolution`` only where it is not 1, so that a
+        case at resolution 1 has the dict (and hash) it had before resolutions existed."""
         d = dataclasses.asdict(self)
+        if d.get("resolution") == 1:
+            del d["resolution"]
         d["kind"] = self.kind
         return d
 

@@ -56,6 +56,9 @@ class PlateCase(CaseBase):
     ``spring_weights``, hinges k_b = D |e|^2 / (A_A + A_B) with D = Y h^3 / 12, times
     ``diagonal_stiffening`` on the cell diagonals; lumped mass rho A h / 3 per triangle corner;
     gravity -m g z; mass-proportional damping ``-c m v``, c = ``damping_rate`` (1/s). Units SI.
+
+    ``refined(r)`` (id ``CASE@rN``, docs/SCALE.md): ``n_length`` and ``n_width`` times r on the
+    same graded map, ``clamp_gap`` over r (the clamp line x = 0 and its slope stay).
     """
 
     id: str = "plate_hanging"
@@ -85,6 +88,7 @@ class PlateCase(CaseBase):
     n_test: int = 6
     seed_train: int = 30_000
     seed_test: int = 6_000
+    resolution: int = 1
 
     kind = "plate"
 
@@ -109,6 +113,15 @@ class PlateCase(CaseBase):
                              f"twice the first free row spacing ({x1:.4g} m): the last clamped "
                              "row sits at x = clamp_gap / 2; pass a smaller clamp_gap")
         self._check_common()
+
+    def refined(self, r: int) -> PlateCase:
+        """This case on a mesh r times finer, id ``CASE@rN`` (docs/SCALE.md): ``n_length`` and
+        ``n_width`` times r, the same ``grading`` and ``grading_layer`` (so the same graded
+        map), ``clamp_gap`` over r; the same sheet, loads and time step; ``r = 1``: itself."""
+        if self._check_refinable(r) == 1:
+            return self
+        return self._refined_copy(r, n_length=self.n_length * r, n_width=self.n_width * r,
+                                  clamp_gap=self.clamp_gap / r)
 
     # --- geometry --------------------------------------------------------------------------
     def x_rows(self) -> np.ndarray:
@@ -200,6 +213,9 @@ class InPlanePlateCase(CaseBase):
     deflection over Timoshenko's); hinges k_b = D |e|^2 / (A_A + A_B); lumped mass rho A h / 3
     per triangle corner; gravity -m g y; mass-proportional damping ``-c m v``,
     c = ``damping_rate``. Positions stay (N, 3) with z = 0 throughout. Units SI.
+
+    ``refined(r)`` (id ``CASE@rN``, docs/SCALE.md): ``n_rows - 1`` and ``n_long`` times r, the
+    same strip, clamp x = 0, loads and time step.
     """
 
     id: str = "plate_cantilever"
@@ -225,6 +241,7 @@ class InPlanePlateCase(CaseBase):
     n_test: int = 6
     seed_train: int = 30_000
     seed_test: int = 6_000
+    resolution: int = 1
 
     kind = "plate_inplane"
 
@@ -240,6 +257,14 @@ class InPlanePlateCase(CaseBase):
                              f"line carries the tip node), got {self.n_rows!r}")
         _check_choice(self, "newton_predictor", PREDICTORS)
         self._check_common()
+
+    def refined(self, r: int) -> InPlanePlateCase:
+        """This case on a mesh r times finer, id ``CASE@rN`` (docs/SCALE.md): ``(n_rows - 1) r
+        + 1`` rows across, ``n_long r`` intervals along (the triangles keep their shape), the
+        same strip, clamp, loads and time step; ``r = 1``: the case itself."""
+        if self._check_refinable(r) == 1:
+            return self
+        return self._refined_copy(r, n_rows=(self.n_rows - 1) * r + 1, n_long=self.n_long * r)
 
     # --- geometry --------------------------------------------------------------------------
     @functools.cached_property

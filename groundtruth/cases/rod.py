@@ -29,6 +29,10 @@ class RodCase(CaseBase):
     Stokes drag coefficient ``6 pi mu R``. ``lumping="line"`` gives the rod's own mass
     ``rho_metal A l_voronoi`` per node, gravity only and no fluid (cantilever checks).
     Nodes listed in ``clamped_nodes`` never move. Units SI.
+
+    ``refined(r)`` (id ``CASE@rN``, docs/SCALE.md) has ``(n_nodes - 1) r + 1`` nodes and the
+    same physics: the same clamped length of rod, and the small spheres' volumes times r^2
+    (``resolution`` = r), so that mass, weight and drag per length are those of r = 1.
     """
 
     id: str = "rod_falling"
@@ -53,6 +57,7 @@ class RodCase(CaseBase):
     n_test: int = 14
     seed_train: int = 71_000
     seed_test: int = 14_000
+    resolution: int = 1
 
     kind = "rod"
 
@@ -97,10 +102,34 @@ class RodCase(CaseBase):
         return edges, np.zeros((0, 3), np.int64), node_type
 
     def node_radius(self) -> np.ndarray:
+        """Sphere radii ``(N,)``, m: ``node_radius_ratio * dL``, ``mid_radius`` at the middle."""
         R = np.full(self.n_nodes, self.node_radius_ratio * self.dL)
         if self.mid_radius is not None:
             R[(self.n_nodes - 1) // 2] = self.mid_radius
         return R
+
+    def volume_factor(self) -> np.ndarray:
+        """``(N,)``: a node's volume (mass, weight, buoyancy) over its sphere's 4/3 pi R^3:
+        ``resolution^2`` for the small spheres, 1 for the middle one. Their radius (so their
+        drag) shrinks as 1/r with dL, their volume as 1/r^3; times r^2, r of them carry the
+        volume of one sphere at r = 1, as drag per length already does (docs/SCALE.md)."""
+        f = np.full(self.n_nodes, float(self.resolution**2))
+        if self.mid_radius is not None:
+            f[(self.n_nodes - 1) // 2] = 1.0
+        return f
+
+    def refined(self, r: int) -> RodCase:
+        """This case with ``(n_nodes - 1) r + 1`` nodes, id ``CASE@rN`` (docs/SCALE.md); the
+        same rod, loads, time step and clamped length; ``r = 1``: the case itself."""
+        if self._check_refinable(r) == 1:
+            return self
+        if self.mid_radius is not None and (self.n_nodes - 1) % 2:
+            raise ValueError(f"case {self.id!r} cannot be refined to resolution {r}: its "
+                             f"middle sphere sits at node {(self.n_nodes - 1) // 2} of "
+                             f"{self.n_nodes}, off the centre, and would move; use an odd "
+                             "n_nodes")
+        return self._refined_copy(r, n_nodes=(self.n_nodes - 1) * r + 1,
+                                  clamped_nodes=refined_clamp(self.clamped_nodes, r))
 
     def initial_state(self):
         x = self.rest_positions()
@@ -111,7 +140,7 @@ class RodCase(CaseBase):
         n, g = self.n_nodes, self.gravity
         if self.lumping == "spheres":
             R = self.node_radius()
-            vol = 4.0 / 3.0 * math.pi * R**3
+            vol = 4.0 / 3.0 * math.pi * R**3 * self.volume_factor()
             mass = vol * self.rho_metal
             weight = -vol * (self.rho_metal - self.rho_fluid) * g
             drag = 6.0 * math.pi * self.viscosity * R
@@ -140,7 +169,18 @@ class RodCase(CaseBase):
     # --- exact anchors ---------------------------------------------------------------------
     def terminal_velocity(self) -> float:
         """Rigid terminal speed (m/s, downward) of the free rod in Stokes flow, any Y:
-        v_T = (2/9)(rho_metal - rho_fluid) g sum R^3 / (mu sum R)."""
+        v_T = (2/9)(rho_metal - rho_fluid) g sum f R^3 / (mu sum R), f = ``volume_factor``."""
         R = self.node_radius()
         return (2.0 / 9.0) * (self.rho_metal - self.rho_fluid) * self.gravity \
-            * np.sum(R**3) / (self.viscosity * np.sum(R))
+            * np.sum(R**3 * self.volume_factor()) / (self.viscosity * np.sum(R))
+
+
+def refined_clamp(clamped_nodes, r: int) -> tuple:
+    """The clamp of a rod refined r times: node i becomes node r i, and a segment whose two
+    end nodes are clamped stays clamped along its length (nodes r i ... r (i + 1)), so the
+    same length of rod is held: ``(0, 1)`` (one segment) becomes ``(0, 1, ..., r)``."""
+    held = set(clamped_nodes)
+    out = {r * i for i in held}
+    for i in held & {j - 1 for j in held}:
+        out.update(range(r * i, r * (i + 1) + 1))
+    return tuple(sorted(out))
