@@ -340,7 +340,9 @@ def test_train_rollout_export_resume_end_to_end(tiny_case, tmp_path, capsys, mon
     assert _cli("export", "--file", out, "--out", tmp_path / "pred.xdmf") == 0
 
 
-def test_rollout_refuses_a_file_from_another_case(tiny_case, tmp_path, capsys):
+def test_rollout_on_a_file_from_another_rod_case(tiny_case, tmp_path, capsys):
+    """A rod of another case (11 nodes, the run's has 21) is a mesh of the run's kind: the
+    model rolls out on it (tests/test_transfer.py), and the metrics name both meshes."""
     from groundtruth import store
 
     case, root = tiny_case
@@ -352,9 +354,11 @@ def test_rollout_refuses_a_file_from_another_case(tiny_case, tmp_path, capsys):
     q = other.rest_positions()[None, None]
     store.save_npz(f, store.trajectory_arrays(other, [0.0, 0.1], np.repeat(q, 2, 1),
                                               np.zeros((1, 2) + q.shape[2:]), [1e9], "single"))
-    assert _cli("rollout", "--run", run, "--file", f, "--out", tmp_path / "x.npz") == 2
-    err = capsys.readouterr().err
-    assert "rod_other_test" in err and "trained on case 'rod_tiny_test'" in err
+    assert _cli("rollout", "--run", run, "--file", f, "--out", tmp_path / "x.npz") == 0
+    out = capsys.readouterr().out
+    assert '"trained_on": "case \'rod_tiny_test\'' in out
+    assert '"rolled_out_on": "case \'rod_other_test\'' in out and "11 nodes" in out
+    assert store.load_npz(tmp_path / "x.npz")["pos"].shape == (1, 2, 11, 3)
 
 
 def test_unknown_model_and_preset_are_clear(tiny_case, tmp_path, capsys):

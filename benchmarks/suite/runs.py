@@ -468,7 +468,10 @@ def rollout_arrays(run_dir, split: str = "test", data_dir=None, checkpoint: str 
                    device: str = "auto", data_file=None, arrays=None) -> tuple[dict, dict]:
     """Roll the run's model out over a split (or ``data_file``); returns the store-format
     arrays of the prediction and metrics (position RMSE and the no-motion baseline, m).
-    ``arrays``: the split's arrays when the caller has already loaded them."""
+    ``arrays``: the split's arrays when the caller has already loaded them. Data on another
+    mesh than the run's (``data_file`` of another case or resolution, e.g. ``CASE@r2``) are
+    rolled out by the model on that mesh (``TrajectoryModel.on_mesh``: the same kind of mesh
+    only; metrics then name both meshes under ``transfer``)."""
     from meshodenet.mesh.data import Mesh, Trajectories
     from meshodenet.metrics import no_motion, position_rmse, rmse_per_frame
 
@@ -480,7 +483,8 @@ def rollout_arrays(run_dir, split: str = "test", data_dir=None, checkpoint: str 
     else:
         name = f"{case.id}/{split}.npz"
         arrays = store.load_split(case, split, data_dir) if arrays is None else arrays
-    model.check_mesh(Mesh.from_arrays(arrays, name), name)
+    trained = model
+    model = model.on_mesh(Mesh.from_arrays(arrays, name), name)
     data = Trajectories.from_arrays(arrays, device=model.device, name=name)
     t0 = time.perf_counter()
     pos, vel = model.rollout_all(data, 16)
@@ -495,6 +499,9 @@ def rollout_arrays(run_dir, split: str = "test", data_dir=None, checkpoint: str 
                "no_motion_rmse_m": position_rmse(no_motion(true), true),
                "final_frame_rmse_m": float(per_frame[-1]), "rollout_wall_time_s": round(wall, 3),
                "n_trajectories": len(data)}
+    if model is not trained:
+        metrics["transfer"] = {"trained_on": trained.mesh.describe(),
+                               "rolled_out_on": model.mesh.describe()}
     out = dict(arrays)
     out["pos"] = pos.detach().double().cpu().numpy()
     out["vel"] = vel.detach().double().cpu().numpy()

@@ -59,6 +59,12 @@ from meshodenet.mesh.data import Mesh
 from meshodenet.mesh.graph import band_order, rod_hinges, triangle_hinges
 
 TYPES = ("edge", "hinge", "dihedral")
+#: the power of the element size ``l`` in each type's invariant ``q`` at a given smooth
+#: deformation: a stretch is a strain (``l^0``), a rod hinge's squared curvature binormal and a
+#: dihedral hinge's squared change of angle are squared turning angles, ``(curvature l)^2``.
+#: On a mesh with elements ``rho`` times the size, ``q / rho^LENGTH_POWER`` is the training
+#: mesh's ``q`` of the same deformation (``ImplicitEnergy.transfer``).
+LENGTH_POWER = {"edge": 0, "hinge": 2, "dihedral": 2}
 
 
 def _curvature(e: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
@@ -66,7 +72,15 @@ def _curvature(e: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
     return 2.0 * torch.cross(e, f, dim=-1) / d[..., None]
 
 
-def static_features(mesh: Mesh) -> dict:
+def standardised(f: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Each column of ``f (n, F)`` standardised with the mean and std of ``ref``'s (``f``
+    itself on the mesh the features are of, the training mesh's on another mesh); a column
+    constant in ``ref`` becomes zero."""
+    sd = ref.std(0)
+    return np.where(sd > 1e-12, (f - ref.mean(0)) / np.where(sd > 0, sd, 1), 0.0)
+
+
+def static_features(mesh: Mesh, reference: Mesh | None = None) -> dict:
     """Per element type: ``(nodes (n, k) long, features (n, N_STATIC) float64, rest)``.
 
     Edge features: ``log(l_0 / mean l_0)``, the summed area of its triangles over ``l_0^2``,
@@ -77,8 +91,33 @@ def static_features(mesh: Mesh) -> dict:
     A_2)`` (the discrete-shell stiffness factor, length over height) and the sum of the
     cotangents of the two angles opposite the edge (zero on a rectangle's diagonal), all
     symmetric in the two triangles. Each column is standardised over the elements (a constant
-    column becomes zero). ``rest``: zeros ``(n, 3)`` for edges, the rest curvature binormal
-    ``(n, 3)`` of rod hinges, the rest dihedral angle ``(n, 1)`` of dihedral hinges."""
+    column becomes zero), or with ``reference`` (a model's training mesh) over that mesh's
+    elements of the same type (``standardised``). ``rest``: zeros ``(n, 3)`` for edges, the
+    rest curvature binormal ``(n, 3)`` of rod hinges, the rest dihedral angle ``(n, 1)`` of
+    dihedral hinges."""
+    if reference is None:
+        out = ref = _raw_static_features(mesh)[0]
+    else:
+        ref, means = _raw_static_features(reference)
+        out = _raw_static_features(mesh, scaled_means(means, mesh, reference))[0]
+    return {name: (nodes, standardised(f, ref[name][1] if name in ref else f), rest)
+            for name, (nodes, f, rest) in out.items()}
+
+
+def scaled_means(means: dict, mesh: Mesh, reference: Mesh) -> dict:
+    """``means`` (lengths, and areas under keys ending in ``area``) of the mesh ``reference``
+    scaled to the element size of ``mesh`` (``Mesh.length_scale``): on a mesh ``r`` times finer
+    the sizes a feature is relative to are the training mesh's over ``r`` (``r^2``), exactly
+    where the refinement is similar, whatever share of its elements lie on a boundary."""
+    rho = mesh.length_scale / reference.length_scale
+    return {k: v * rho ** (2 if k.endswith("area") else 1) for k, v in means.items()}
+
+
+def _raw_static_features(mesh: Mesh, means: dict | None = None) -> tuple[dict, dict]:
+    """``static_features`` before the columns are standardised, and the mean sizes its
+    relative-size features (``log(l_0 / mean l_0)``, ...) are taken against: ``means`` where
+    given (``scaled_means`` of a training mesh), else this mesh's own."""
+    means = {} if means is None else dict(means)
     x = np.asarray(mesh.rest_pos, float)
     e = np.asarray(mesh.edges, np.int64)
     l0 = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)
@@ -96,35 +135,34 @@ def static_features(mesh: Mesh) -> dict:
             area[k] += a
             cot[k] += np.dot(u, w) / max(np.linalg.norm(np.cross(u, w)), 1e-300)
             count[k] += 1
-    out = {"edge": (e, np.stack([np.log(l0 / l0.mean()), area / l0**2, cot, count], 1),
+    l0_mean = means.setdefault("edge_l0", l0.mean())
+    out = {"edge": (e, np.stack([np.log(l0 / l0_mean), area / l0**2, cot, count], 1),
                     np.zeros((len(e), 3)))}
     hg = rod_hinges(mesh.edges, mesh.n_nodes) if not len(mesh.cells) else np.zeros((0, 3), int)
     if len(hg):
         ea, fb = x[hg[:, 1]] - x[hg[:, 0]], x[hg[:, 2]] - x[hg[:, 1]]
         lv = 0.5 * (np.linalg.norm(ea, axis=1) + np.linalg.norm(fb, axis=1))
         feats = np.zeros((len(hg), N_STATIC))
-        feats[:, 0] = np.log(lv / lv.mean())
+        feats[:, 0] = np.log(lv / means.setdefault("hinge_lv", lv.mean()))
         kap0 = _curvature(torch.as_tensor(ea), torch.as_tensor(fb)).numpy()
         out["hinge"] = (hg, feats, kap0)
     if len(mesh.cells):
-        out["dihedral"] = _dihedral_features(x, triangle_hinges(mesh.cells))
-    for name, (nodes, f, rest) in out.items():
-        sd = f.std(0)
-        out[name] = (nodes, np.where(sd > 1e-12, (f - f.mean(0)) / np.where(sd > 0, sd, 1), 0.0),
-                     rest)
-    return out
+        out["dihedral"] = _dihedral_features(x, triangle_hinges(mesh.cells), means)
+    return out, means
 
 
-def _dihedral_features(x: np.ndarray, hg: np.ndarray):
+def _dihedral_features(x: np.ndarray, hg: np.ndarray, means: dict):
     """``(hinges, features (n, N_STATIC), theta_0 (n, 1))`` of the dihedral hinges ``hg``
-    (unstandardised; see ``static_features``)."""
+    (unstandardised; see ``static_features``; ``means`` as ``_raw_static_features``)."""
     e, p, m = (x[hg[:, c]] - x[hg[:, 0]] for c in (1, 2, 3))
     l0 = np.linalg.norm(e, axis=1)
     twice = [np.linalg.norm(np.cross(e, w), axis=1) for w in (p, m)]  # 2 A_1, 2 A_2
     area = 0.5 * (twice[0] + twice[1])
     # the angle at the opposite vertex w of the edge: cot = (e_i - w) . (e_j - w) / |... x ...|
     cot = sum(np.einsum("ni,ni->n", w, w - e) / np.maximum(t, 1e-300) for w, t in zip((p, m), twice))
-    feats = np.stack([np.log(l0 / l0.mean()), np.log(area / area.mean()), l0**2 / area, cot], 1)
+    feats = np.stack([np.log(l0 / means.setdefault("dihedral_l0", l0.mean())),
+                      np.log(area / means.setdefault("dihedral_area", area.mean())),
+                      l0**2 / area, cot], 1)
     theta0 = dihedral_angle(torch.as_tensor(x[hg])).numpy()
     return hg, feats, theta0[:, None]
 

@@ -32,7 +32,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from meshodenet.energy.core import N_STATIC, _edge_geometry, zero_output_mlp
+from meshodenet.energy.core import (
+    N_STATIC,
+    _edge_geometry,
+    scaled_means,
+    standardised,
+    zero_output_mlp,
+)
 from meshodenet.mesh.data import Mesh
 
 #: The terms of the dissipation (``DissipationConfig.damping_terms``):
@@ -52,11 +58,25 @@ N_NODE = 4
 N_FEATURES = {"node": N_NODE, "edge": N_STATIC}
 
 
-def node_features(mesh: Mesh) -> np.ndarray:
+def node_features(mesh: Mesh, reference: Mesh | None = None) -> np.ndarray:
     """``(N, N_NODE)`` float64: each node's mass over the mean, its share of the mesh's
     measure over the mean (half its edges' rest lengths on line meshes, a third of its
     triangles' rest areas on triangle meshes), its number of edges and of triangles; each
-    column standardised over the nodes (a constant column becomes zero)."""
+    column standardised over the nodes (a constant column becomes zero), or with
+    ``reference`` (a model's training mesh) over that mesh's nodes."""
+    if reference is None:
+        f = _raw_node_features(mesh)[0]
+        return standardised(f, f)
+    ref, means = _raw_node_features(reference)
+    return standardised(_raw_node_features(mesh, scaled_means(means, mesh, reference))[0], ref)
+
+
+def _raw_node_features(mesh: Mesh, means: dict | None = None) -> tuple[np.ndarray, dict]:
+    """``node_features`` before the columns are standardised, and the means the mass and the
+    share are relative to: ``means`` where given (``scaled_means`` of a training mesh: the
+    mass of a triangle mesh scaled as an area, of a line mesh as a length), else this mesh's
+    own."""
+    means = {} if means is None else dict(means)
     x = np.asarray(mesh.rest_pos, float)
     e = np.asarray(mesh.edges, np.int64)
     cells = np.asarray(mesh.cells, np.int64)
@@ -72,9 +92,9 @@ def node_features(mesh: Mesh) -> np.ndarray:
         length = np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1)
         np.add.at(share, e.reshape(-1), np.repeat(length / 2, 2))
     mass = np.asarray(mesh.mass, float)
-    f = np.stack([mass / mass.mean(), share / share.mean(), degree, count], 1)
-    sd = f.std(0)
-    return np.where(sd > 1e-12, (f - f.mean(0)) / np.where(sd > 0, sd, 1), 0.0)
+    size = "share_area" if len(cells) else "share_length"  # the mass goes as the share
+    return np.stack([mass / means.setdefault(f"mass_{size}", mass.mean()),
+                     share / means.setdefault(size, share.mean()), degree, count], 1), means
 
 
 class DampingCoefficient(nn.Module):

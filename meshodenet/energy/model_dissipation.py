@@ -48,7 +48,7 @@ from meshodenet.energy.dissipation import (
     DampingCoefficient,
     node_features,
 )
-from meshodenet.energy.model import QUICK, EnergyConfig, ImplicitEnergy
+from meshodenet.energy.model import QUICK, EnergyConfig, ImplicitEnergy, fitted_factor
 from meshodenet.mesh.data import Mesh, Trajectories
 from meshodenet.training.presets import check_int, preset_configs
 
@@ -239,15 +239,47 @@ class ImplicitEnergyDissipation(ImplicitEnergy):
         (on the free nodes for the node term: a triangle mesh's masses are its nodes' areas,
         and dependent columns make the fit's split between them depend on round-off)."""
         static = self._dstatic(term)
-        basis = [torch.ones_like(static[:, 0])]
+        return [torch.ones_like(static[:, 0])] + [static[:, j]
+                                                  for j in self._damping_basis_columns(term)]
+
+    def _damping_basis_columns(self, term: str) -> list:
+        """The static features (columns) of ``_damping_basis``."""
+        static = self._dstatic(term)
+        basis, cols = [torch.ones_like(static[:, 0])], []
         if self.config.stiffness_prior == "uniform":
-            return basis
+            return cols
         rows = self.free if term == "node" else slice(None)
         for j in range(static.shape[1]):
             trial = torch.stack(basis + [static[:, j]], 1)[rows]
             if int(torch.linalg.matrix_rank(trial, rtol=1e-9)) == len(basis) + 1:
                 basis.append(static[:, j])
-        return basis
+                cols.append(j)
+        return cols
+
+    # --- other meshes (TrajectoryModel.on_mesh) -----------------------------------------------
+    def mesh_state_keys(self) -> set:
+        """``ImplicitEnergy``'s, the nodes' static features and the damping factors."""
+        return super().mesh_state_keys() | {"node_dstatic"} | {
+            f"{t}_dprior" for t in self.dterms}
+
+    @torch.no_grad()
+    def transfer(self, mesh: Mesh, what: str = "data") -> ImplicitEnergyDissipation:
+        """``ImplicitEnergy.transfer``, and the dissipation as the energy: a node's drag and an
+        edge's friction are shares of a density per unit length (rods) or area (plates), so
+        each term's rate ``b_0`` gains ``d log rho``; the nodes' static features standardised
+        with the training mesh's statistics; ``kappa`` fitted in its basis
+        (``_damping_basis``) and evaluated on the new nodes and edges."""
+        new = super().transfer(mesh, what)
+        rho = mesh.length_scale / self.mesh.length_scale
+        d = 1 if mesh.kind == "line" else 2
+        new.node_dstatic.copy_(torch.as_tensor(node_features(mesh, reference=self.mesh)))
+        for t, coef in new.dterms.items():
+            coef.log_rate0 = self.dterms[t].log_rate0 + d * math.log(rho)
+            if self.config.stiffness_prior == "features":
+                getattr(new, f"{t}_dprior").copy_(fitted_factor(
+                    torch.stack(self._damping_basis(t), 1), getattr(self, f"{t}_dprior"),
+                    new._dstatic(t), self._damping_basis_columns(t)))
+        return new
 
     def _damping_columns(self, xk, x1, h, skip: tuple = ()) -> tuple[list, list]:
         """The fit's damping columns: the forces ``C_j v`` on the free nodes of each basis

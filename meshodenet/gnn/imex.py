@@ -130,6 +130,10 @@ class MeshODENetIMEX(MeshODENet):
             mom.add(v[1:] + (v[1:] - v[:-1]) / (h * g[:, free]))
         self.stats.acc.set_stats(*mom.result())
 
+    def mesh_state_keys(self) -> set:
+        """``gamma``: the case's drag rate per node, the new mesh's own on another mesh."""
+        return {"gamma"}
+
     def _gamma(self, B: int, dtype) -> torch.Tensor:
         return self.gamma.to(dtype).repeat(B)[:, None]
 

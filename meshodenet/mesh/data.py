@@ -14,6 +14,8 @@ import numpy as np
 import torch
 
 N_NODE_TYPES = 2  # 0 free, 1 clamped (docs/FORMAT.md)
+#: what each ``Mesh.kind`` is, for messages
+KIND_NAMES = {"line": "a rod", "triangle": "a plate or shell"}
 MESH_KEYS = ("edges", "cells", "node_type", "rest_pos", "mass", "force", "damping")
 TRAJECTORY_KEYS = ("t", "pos", "vel", "youngs")
 
@@ -91,6 +93,36 @@ class Mesh:
         """``"line"`` (a rod: no cells) or ``"triangle"`` (a shell); selects the node features."""
         return "triangle" if len(self.cells) else "line"
 
+    @property
+    def dims(self) -> int:
+        """2 for a mesh that stays in its plane (rest ``z`` constant, no load along ``z``: it
+        moves in ``x-y`` only), else 3."""
+        planar = np.ptp(self.rest_pos[:, 2]) == 0 and not np.any(self.force[:, 2])
+        return 2 if planar else 3
+
+    @property
+    def length_scale(self) -> float:
+        """The mesh's element size (m): the mean rest edge length of a line mesh, the square
+        root of the mean rest triangle area of a triangle mesh (a mesh r times finer: 1/r)."""
+        x = np.asarray(self.rest_pos, np.float64)
+        if self.kind == "line":
+            e = np.asarray(self.edges, np.int64)
+            return float(np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1).mean())
+        p = x[np.asarray(self.cells, np.int64)]
+        area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+        return float(np.sqrt(area.mean()))
+
+    def describe(self) -> str:
+        """``"case 'rod_falling' (a line mesh: a rod, 21 nodes, 20 edges)"``, for messages."""
+        return (f"case {self.case or '?'!r} (a {self.kind} mesh: {KIND_NAMES[self.kind]}, "
+                f"{self.n_nodes} nodes, {len(self.edges)} edges)")
+
+    def same_as(self, other: Mesh) -> bool:
+        """Whether ``other`` holds this mesh's arrays (topology, rest shape, node types,
+        masses, loads, damping), whatever the case it names."""
+        return all(np.shape(getattr(self, k)) == np.shape(getattr(other, k))
+                   and np.array_equal(getattr(self, k), getattr(other, k)) for k in MESH_KEYS)
+
     def signature(self) -> str:
         """sha256 of the topology and rest shape; a model only runs on meshes with its own."""
         h = hashlib.sha256()
@@ -113,14 +145,15 @@ class Mesh:
         return cls(**arrays, case=d.get("case", ""), case_hash=d.get("case_hash", ""))
 
     def check_same(self, other: Mesh, what: str = "data") -> None:
-        """Raise ``DataError`` if ``other`` is not this mesh or comes from another case."""
+        """Raise ``DataError`` if ``other`` is not this mesh or comes from another case (where
+        only the training mesh will do; a rollout on another mesh of the same kind goes
+        through ``TrajectoryModel.on_mesh``)."""
         other_case = bool(self.case and other.case and self.case != other.case)
         if other_case or other.signature() != self.signature():
             raise DataError(
-                f"{what} is case {other.case or '?'!r} ({other.n_nodes} nodes, "
-                f"{len(other.edges)} edges) but the model was trained on case "
-                f"{self.case or '?'!r} ({self.n_nodes} nodes, {len(self.edges)} edges); "
-                "use a run trained on this case")
+                f"{what} is {other.describe()} but the model was trained on case "
+                f"{self.case or '?'!r} ({self.n_nodes} nodes, {len(self.edges)} edges) and "
+                "this needs its training mesh")
 
 
 @dataclass(frozen=True)
