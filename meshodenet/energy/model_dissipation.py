@@ -48,7 +48,8 @@ from meshodenet.energy.dissipation import (
     DampingCoefficient,
     node_features,
 )
-from meshodenet.energy.model import QUICK, EnergyConfig, ImplicitEnergy, fitted_factor
+from meshodenet.energy.model import QUICK, EnergyConfig, ImplicitEnergy
+from meshodenet.energy.transfer import fitted_factor
 from meshodenet.mesh.data import Mesh, Trajectories
 from meshodenet.training.presets import check_int, preset_configs
 
