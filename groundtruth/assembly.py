@@ -93,15 +93,8 @@ class Assembler:
             if solver != "banded":
                 active = np.ones(ndof, bool) if resting is None else ~np.asarray(resting, bool)
                 self.sparse = SparseSolver(self._indptr, self._indices, active)
-        self._pos_kept = self._pos[keep]
-        sizes = [d.shape[0] * d.shape[1] ** 2 for d in self.element_dofs]
-        ends = np.cumsum(sizes)
-        self._kept_slices, start = [], 0
-        for end, size in zip(ends, sizes):
-            take = np.flatnonzero(keep[end - size:end])
-            self._kept_slices.append((start, take))
-            start += take.size
-        self._kept_slices.append((start, None))  # the diagonal, all kept
+        self._dropped = np.flatnonzero(~keep)
+        self._n_el_entries = rows.size - ndof
 
     def vector(self, grads: list[np.ndarray]) -> np.ndarray:
         """Sum element vectors ``(n_el, d)`` into a global ``(ndof,)`` vector."""
@@ -112,15 +105,10 @@ class Assembler:
 
     def matrix(self, hessians: list[np.ndarray], diagonal: np.ndarray) -> SystemMatrix:
         """Assemble ``sum(element Hessians) + diag(diagonal)`` with fixed dofs set to identity."""
-        # the kept entries in their original order, into one buffer: the same sums, bit for bit,
-        # as summing every entry with the dropped ones zeroed (adding +-0.0 changes no sum)
-        vals = np.empty(self._pos_kept.size)
-        for h, (start, take) in zip(hessians, self._kept_slices):
-            np.take(h.reshape(-1), take, out=vals[start:start + take.size])
-        diag = vals[self._kept_slices[-1][0]:]
-        diag[:] = diagonal
-        diag[self.fixed] = 1.0
-        data = np.bincount(self._pos_kept, weights=vals, minlength=self._size)
+        vals = np.concatenate([h.ravel() for h in hessians] + [diagonal])
+        vals[self._dropped] = 0.0  # entries of clamped rows and columns (a few)
+        vals[self._n_el_entries:][self.fixed] = 1.0
+        data = np.bincount(self._pos, weights=vals, minlength=self._size)
         if self.banded:
             return SystemMatrix(band=data.reshape(2 * self.bandwidth + 1, self.ndof),
                                 bandwidth=self.bandwidth)
