@@ -195,6 +195,7 @@ class SparseSolver:
             return None
 
     def solve(self, lu, rhs: np.ndarray, csr: scipy.sparse.csr_matrix) -> np.ndarray:
+        """``x (ndof,)`` with ``csr x = rhs``; ``lu`` is ``factor(csr.data)``."""
         if self.active.size < rhs.size:
             rest = np.ones(rhs.size, bool)
             rest[self.active] = False
