@@ -41,6 +41,12 @@ class MechanicalSystem:
         force: constant external force per node ``(N, 3)``, N.
         fixed_nodes: boolean ``(N,)``, True for clamped nodes.
         force_scale: a characteristic force (N) that scales the Newton tolerance.
+        linear_solver: Newton's linear solver, one of ``groundtruth.assembly.LINEAR_SOLVERS``
+            (``"auto"``: the band LU of the committed data on small meshes, a sparse
+            factorization on large ones); switch with ``dataclasses.replace``.
+        resting_dofs: boolean ``(3N,)`` or ``None``: dofs the physics keeps at rest exactly
+            (unloaded, unmoving, uncoupled: the z of an in-plane plate), which the sparse
+            solver leaves out of the factorization.
     """
 
     terms: list
@@ -49,6 +55,8 @@ class MechanicalSystem:
     force: np.ndarray
     fixed_nodes: np.ndarray
     force_scale: float
+    linear_solver: str = "auto"
+    resting_dofs: np.ndarray | None = None
     assembler: Assembler = field(init=False, repr=False)
 
     def __post_init__(self):
@@ -59,7 +67,8 @@ class MechanicalSystem:
         self.fixed_nodes = np.asarray(self.fixed_nodes, bool)
         if self.damping.shape != (n,) or self.fixed_nodes.shape != (n,):
             raise ValueError(f"damping and fixed_nodes must have shape ({n},)")
-        self.assembler = Assembler([t.dofs for t in self.terms], 3 * n, self.fixed_dofs)
+        self.assembler = Assembler([t.dofs for t in self.terms], 3 * n, self.fixed_dofs,
+                                   self.linear_solver, self.resting_dofs)
 
     @property
     def n_nodes(self) -> int:
