@@ -147,3 +147,38 @@ def test_commands_refuse_a_dirty_checkout(name, repo, tmp_path, monkeypatch, cap
     assert "uncommitted changes to 1 tracked file (code.py)" in err and "--allow-dirty" in err
     assert main(argv + ["--allow-dirty"]) == 2
     assert "work started" in capsys.readouterr().err
+
+
+def test_crosscheck_records_the_code_as_it_was_before_its_own_outputs(tmp_path, monkeypatch):
+    """A command that rewrites committed files as it goes (``crosscheck``'s CSV and summary,
+    ``curves``' curves.csv) records the code's state taken before it wrote anything: its own
+    outputs never make the record say ``-dirty`` (as they never make it refused)."""
+    import dataclasses
+    import json
+
+    from benchmarks.suite.registry import get_case
+    from benchmarks.validation import crosscheck as cc
+
+    calls = []
+
+    def sha_now(repo=None):  # clean until the command's first output exists
+        calls.append(any(tmp_path.iterdir()))
+        return "abc-dirty-0123" if calls[-1] else "abc"
+
+    monkeypatch.setattr(store, "git_sha", sha_now)
+    tiny = dataclasses.replace(get_case("rod_cantilever"), t_end=0.03)
+    monkeypatch.setitem(cc.CROSSCHECKS, "tiny", lambda youngs=None: dataclasses.replace(
+        cc.rod_crosscheck(tiny, youngs, [cc.Resolution("default", 11, 10)]), case_id="tiny"))
+    assert main(["crosscheck", "tiny", "--out-dir", str(tmp_path), "--no-progress"]) == 0
+    assert calls and not calls[0]
+    assert json.loads((tmp_path / "tiny.json").read_text())["git_sha"] == "abc"
+
+
+def test_curves_evaluation_records_the_code_as_it_was_before_its_own_outputs(tmp_path):
+    import json
+
+    from benchmarks.suite import curves
+
+    path = tmp_path / "evaluation.json"
+    curves.write_evaluation(path, "cpu", "abc")
+    assert json.loads(path.read_text())["git_sha"] == "abc"

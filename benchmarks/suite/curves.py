@@ -228,6 +228,9 @@ def build_curves(suite: Suite, *, results_dir="results", runs_dir="runs", data_d
                          f"train its runs first (meshbench run --suite {suite.name})")
     df, index = read_curves(out)
     cache, computed = SplitCache(data_dir), 0
+    # the code's state before this writes anything: curves.csv and the archived run files it
+    # rewrites (committed files) must not make the evaluation record say "dirty"
+    sha = store.git_sha()
     for spec in dict.fromkeys(t[0] for t in todo):
         archive_provenance(runs_dir / spec.run_id, out / PROVENANCE_DIR / spec.run_id)
     evaluated: set = set()
@@ -245,7 +248,7 @@ def build_curves(suite: Suite, *, results_dir="results", runs_dir="runs", data_d
         computed += 1
         if spec.run_id not in evaluated:
             evaluated.add(spec.run_id)
-            write_evaluation(out / PROVENANCE_DIR / spec.run_id / EVALUATION_FILE, device)
+            write_evaluation(out / PROVENANCE_DIR / spec.run_id / EVALUATION_FILE, device, sha)
         test_all = rows[(rows["split"] == "test") & (rows["step"] == ALL_STEPS)]["rmse"].iloc[0]
         _log(f"[{k}/{len(todo)}] {spec.run_id}: budget {key} s (CPU {row.cpu_s:.0f} s, epoch "
              f"{row.epoch}): test RMSE over rollouts {test_all:.4g} m")
@@ -273,15 +276,16 @@ def archive_provenance(run_dir: Path, dest: Path) -> list:
     return copied
 
 
-def write_evaluation(path: Path, device: str) -> None:
-    """Who evaluated a run's checkpoints: git commit, library versions, machine, device."""
+def write_evaluation(path: Path, device: str, git_sha: str | None = None) -> None:
+    """Who evaluated a run's checkpoints: git commit (``git_sha``, taken before the evaluation
+    wrote anything; default now), library versions, machine, device."""
     import datetime
     import platform
 
     from benchmarks.suite.runner import _cpu_model
 
     store.save_json(path, {
-        "git_sha": store.git_sha(), "versions": store.library_versions(),
+        "git_sha": git_sha or store.git_sha(), "versions": store.library_versions(),
         "host": platform.node(), "machine": platform.machine(), "cpu_model": _cpu_model(),
         "cpu_count": os.cpu_count(), "device": str(device),
         "timestamp": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")})

@@ -582,6 +582,9 @@ def run_crosscheck(check: CrossCheck, out_dir: Path = RESULTS_DIR,
     out_dir = Path(out_dir)
     todo = list(check.resolutions if resolutions is None else resolutions)
     load0 = os.getloadavg()
+    # the code's state before this writes anything: its own outputs (committed files once
+    # rewritten) must not make the record say "dirty"
+    sha = store.git_sha()
     new_rows, default_pair = [], None
     for res in todo:
         if progress:
@@ -602,7 +605,7 @@ def run_crosscheck(check: CrossCheck, out_dir: Path = RESULTS_DIR,
     store.save_json(out_dir / f"{check.case_id}.json", {
         "case_id": check.case_id, "youngs": check.youngs, "target_l2_rel": check.target_l2,
         "config": check.config, "resolutions": [dataclasses.asdict(r) for r in todo],
-        "rows": new_rows, "git_sha": store.git_sha(), "versions": _versions(),
+        "rows": new_rows, "git_sha": sha, "versions": _versions(),
         "threads": os.environ.get("OMP_NUM_THREADS"), "cpu_count": os.cpu_count(),
         "load_average_start": load0, "load_average_end": os.getloadavg(),
     })
