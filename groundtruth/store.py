@@ -162,16 +162,31 @@ def _git(repo: Path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(["git", *args], capture_output=True, cwd=repo, timeout=30)
 
 
-def git_state(repo: str | os.PathLike | None = None) -> tuple[str, list[str]] | None:
+def _excludes(repo: Path, exclude) -> list[str]:
+    """git pathspecs leaving out the directories ``exclude`` (those inside ``repo``'s work
+    tree; others are ignored), after a ``--``."""
+    top = _git(repo, "rev-parse", "--show-toplevel").stdout.decode().strip()
+    specs = []
+    for d in exclude:
+        d = Path(d).resolve()
+        if top and d.is_relative_to(Path(top).resolve()):
+            specs.append(f":(exclude,top){d.relative_to(Path(top).resolve()).as_posix()}")
+    return ["--", ":/", *specs] if specs else []
+
+
+def git_state(repo: str | os.PathLike | None = None,
+              exclude=()) -> tuple[str, list[str]] | None:
     """``(HEAD sha, paths of modified tracked files)`` of ``repo`` (default: the package's
-    checkout), or None without git or a commit. Untracked files do not count."""
+    checkout), or None without git or a commit. Untracked files do not count, nor files
+    under the directories ``exclude`` (a command's own outputs)."""
     repo = Path(REPO if repo is None else repo)
     try:
         out = _git(repo, "rev-parse", "HEAD")
         sha = out.stdout.decode().strip()
         if out.returncode != 0 or not sha:
             return None
-        status = _git(repo, "status", "--porcelain", "--untracked-files=no")
+        status = _git(repo, "status", "--porcelain", "--untracked-files=no",
+                      *_excludes(repo, exclude))
         if status.returncode != 0:
             return None
         # "XY path" or "XY old -> new" (a rename); the path after the arrow is the one now
@@ -182,20 +197,23 @@ def git_state(repo: str | os.PathLike | None = None) -> tuple[str, list[str]] | 
         return None
 
 
-def git_sha(repo: str | os.PathLike | None = None) -> str:
+def git_sha(repo: str | os.PathLike | None = None, exclude=()) -> str:
     """``SHA`` of ``repo``'s HEAD (default: the package's checkout); ``SHA-dirty-HASH`` when
     tracked files are modified, HASH the first 12 hex digits of the sha256 of
     ``git diff --binary HEAD`` (the uncommitted change itself, staged or not); "unknown"
-    without git. ``SHA-dirty`` alone when the diff could not be read."""
-    state = git_state(repo)
+    without git. ``SHA-dirty`` alone when the diff could not be read. Files under the
+    directories ``exclude`` (the calling command's own outputs, committed files it rewrites)
+    count neither as modified nor in the diff."""
+    state = git_state(repo, exclude)
     if state is None:
         return "unknown"
     sha, dirty = state
     if not dirty:
         return sha
     try:
-        diff = _git(Path(REPO if repo is None else repo), "diff", "--binary", "--no-color",
-                    "--no-ext-diff", "--no-textconv", "HEAD")
+        repo = Path(REPO if repo is None else repo)
+        diff = _git(repo, "diff", "--binary", "--no-color", "--no-ext-diff", "--no-textconv",
+                    "HEAD", *_excludes(repo, exclude))
     except (OSError, subprocess.SubprocessError):
         return f"{sha}-dirty"
     if diff.returncode != 0:

@@ -61,6 +61,21 @@ def test_git_sha_names_the_diff(repo, tmp_path):
     assert store.git_sha(plain) == "unknown" and store.git_state(plain) is None
 
 
+def test_git_sha_leaves_out_a_commands_own_outputs(repo):
+    """Committed files under ``exclude`` (a command's own output directory, rewritten by it or
+    by an earlier run into it) neither make the tree dirty nor enter the diff's hash."""
+    head = git(repo, "rev-parse", "HEAD").strip()
+    (repo / "results" / "table.csv").write_text("a\n2\n")
+    assert store.git_sha(repo).startswith(f"{head}-dirty-")
+    assert store.git_sha(repo, exclude=[repo / "results"]) == head
+    assert store.git_state(repo, exclude=[repo / "results"]) == (head, [])
+    (repo / "code.py").write_text("x = 2\n")  # a change of the code still counts, alone
+    code_only = store.git_sha(repo, exclude=[repo / "results"])
+    (repo / "results" / "table.csv").write_text("a\n1\n")
+    assert code_only == store.git_sha(repo) != head
+    assert store.git_sha(repo, exclude=["/somewhere/else"]) == code_only
+
+
 def test_refusal_rule(repo, tmp_path):
     out = repo / "results"
     provenance.refuse_dirty(out, repo=repo)  # clean: passes
@@ -151,8 +166,9 @@ def test_commands_refuse_a_dirty_checkout(name, repo, tmp_path, monkeypatch, cap
 
 def test_crosscheck_records_the_code_as_it_was_before_its_own_outputs(tmp_path, monkeypatch):
     """A command that rewrites committed files as it goes (``crosscheck``'s CSV and summary,
-    ``curves``' curves.csv) records the code's state taken before it wrote anything: its own
-    outputs never make the record say ``-dirty`` (as they never make it refused)."""
+    ``curves``' curves.csv) records the code's state without its own output directory: its
+    outputs, also those of an earlier run into it, never make the record say ``-dirty`` (as
+    they never make it refused)."""
     import dataclasses
     import json
 
@@ -161,17 +177,19 @@ def test_crosscheck_records_the_code_as_it_was_before_its_own_outputs(tmp_path, 
 
     calls = []
 
-    def sha_now(repo=None):  # clean until the command's first output exists
+    def sha_now(repo=None, exclude=()):  # dirty once outputs exist, unless left out
         calls.append(any(tmp_path.iterdir()))
-        return "abc-dirty-0123" if calls[-1] else "abc"
+        own = any(tmp_path.resolve() == type(tmp_path)(d).resolve() for d in exclude)
+        return "abc-dirty-0123" if calls[-1] and not own else "abc"
 
     monkeypatch.setattr(store, "git_sha", sha_now)
     tiny = dataclasses.replace(get_case("rod_cantilever"), t_end=0.03)
     monkeypatch.setitem(cc.CROSSCHECKS, "tiny", lambda youngs=None: dataclasses.replace(
         cc.rod_crosscheck(tiny, youngs, [cc.Resolution("default", 11, 10)]), case_id="tiny"))
-    assert main(["crosscheck", "tiny", "--out-dir", str(tmp_path), "--no-progress"]) == 0
-    assert calls and not calls[0]
-    assert json.loads((tmp_path / "tiny.json").read_text())["git_sha"] == "abc"
+    for _ in range(2):  # the second run starts with the first one's outputs in place
+        assert main(["crosscheck", "tiny", "--out-dir", str(tmp_path), "--no-progress"]) == 0
+        assert json.loads((tmp_path / "tiny.json").read_text())["git_sha"] == "abc"
+    assert calls[-1]
 
 
 def test_curves_evaluation_records_the_code_as_it_was_before_its_own_outputs(tmp_path):

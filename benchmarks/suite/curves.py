@@ -228,9 +228,9 @@ def build_curves(suite: Suite, *, results_dir="results", runs_dir="runs", data_d
                          f"train its runs first (meshbench run --suite {suite.name})")
     df, index = read_curves(out)
     cache, computed = SplitCache(data_dir), 0
-    # the code's state before this writes anything: curves.csv and the archived run files it
-    # rewrites (committed files) must not make the evaluation record say "dirty"
-    sha = store.git_sha()
+    # the code's state: curves.csv and the archived run files it rewrites (committed files)
+    # do not make the evaluation record say "dirty"
+    sha = store.git_sha(exclude=[out])
     for spec in dict.fromkeys(t[0] for t in todo):
         archive_provenance(runs_dir / spec.run_id, out / PROVENANCE_DIR / spec.run_id)
     evaluated: set = set()

@@ -582,9 +582,9 @@ def run_crosscheck(check: CrossCheck, out_dir: Path = RESULTS_DIR,
     out_dir = Path(out_dir)
     todo = list(check.resolutions if resolutions is None else resolutions)
     load0 = os.getloadavg()
-    # the code's state before this writes anything: its own outputs (committed files once
-    # rewritten) must not make the record say "dirty"
-    sha = store.git_sha()
+    # the code's state: its own outputs (committed files it rewrites, also by an earlier
+    # case's run into the same directory) do not make the record say "dirty"
+    sha = store.git_sha(exclude=[out_dir])
     new_rows, default_pair = [], None
     for res in todo:
         if progress:
