@@ -101,6 +101,19 @@ def test_summary_upserts_sorted_rows_in_fixed_format(tmp_path):
     assert not list(tmp_path.glob(".*tmp"))
 
 
+def test_summary_replaces_a_row_read_back_at_the_files_precision(tmp_path):
+    """A resolution run again replaces its row even where the file keeps fewer digits than
+    the run (Poisson 1/3 is written 0.3333): no duplicate rows."""
+    row = dict(case="c", variant="refine", ref_nodes=9, fem_nx=60, fem_ny=4,
+               integrator="backward_euler", poisson=1 / 3, dt=7.5e-4, youngs=5e6,
+               l2_rel=1e-3, max_shape_m=1e-4, max_shape_rel=1e-3, ref_wall_s=1.0,
+               fem_wall_s=2.0)
+    path = tmp_path / "summary.csv"
+    cc.update_summary(path, [row])
+    rows = cc.update_summary(path, [dict(row, l2_rel=2e-3)])
+    assert len(rows) == 1 and cc.read_summary(path)[0]["l2_rel"] == 2e-3
+
+
 def test_unknown_crosscheck_lists_the_valid_ones():
     with pytest.raises(KeyError, match="rod_cantilever"):
         cc.get_crosscheck("rod_nope")

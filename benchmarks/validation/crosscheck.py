@@ -514,9 +514,14 @@ def read_summary(path: Path) -> list[dict]:
 
 
 def _row_key(r: dict) -> tuple:
+    """A summary row's case and resolution, its floats at the precision the file keeps: a
+    row read back from ``summary.csv`` (Poisson 0.3333) and the same resolution run again
+    (1/3) are one row."""
+    def kept(col):
+        return float(SUMMARY_COLUMNS[col].format(float(r[col])))
+
     return (r["case"], r["variant"] != "default", r["variant"], r["ref_nodes"], r["fem_nx"],
-            r["fem_ny"], r["integrator"], round(float(r["poisson"]), 6),
-            -round(float(r["dt"]), 12))
+            r["fem_ny"], r["integrator"], kept("poisson"), -kept("dt"))
 
 
 def update_summary(path: Path, new_rows: list[dict]) -> list[dict]:
