@@ -174,6 +174,7 @@ class SparseSolver:
     def __init__(self, indptr: np.ndarray, indices: np.ndarray, active: np.ndarray,
                  backend: str | None = None):
         self.active = np.flatnonzero(active)
+        self._resting = np.flatnonzero(~np.asarray(active, bool))
         n = indptr.size - 1
         rows = np.repeat(np.arange(n), np.diff(indptr))
         sub = np.zeros(n, np.int64) - 1
@@ -196,11 +197,8 @@ class SparseSolver:
 
     def solve(self, lu, rhs: np.ndarray, csr: scipy.sparse.csr_matrix) -> np.ndarray:
         """``x (ndof,)`` with ``csr x = rhs``; ``lu`` is ``factor(csr.data)``."""
-        if self.active.size < rhs.size:
-            rest = np.ones(rhs.size, bool)
-            rest[self.active] = False
-            if np.any(rhs[rest] != 0):  # not at rest: solve the whole system
-                return scipy.sparse.linalg.splu(csr.tocsc()).solve(rhs)
+        if np.any(rhs[self._resting] != 0):  # not at rest: solve the whole system
+            return scipy.sparse.linalg.splu(csr.tocsc()).solve(rhs)
         x = np.zeros_like(rhs)
         b = rhs[self.active]
         block = self._block(csr.data)

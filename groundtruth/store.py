@@ -162,15 +162,22 @@ def _git(repo: Path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(["git", *args], capture_output=True, cwd=repo, timeout=30)
 
 
+def _toplevel(repo: Path) -> Path | None:
+    """The root of the work tree ``repo`` lies in (resolved), or None outside one."""
+    out = _git(repo, "rev-parse", "--show-toplevel")
+    top = out.stdout.decode().strip()
+    return Path(top).resolve() if out.returncode == 0 and top else None
+
+
 def _excludes(repo: Path, exclude) -> list[str]:
-    """git pathspecs leaving out the directories ``exclude`` (those inside ``repo``'s work
-    tree; others are ignored), after a ``--``."""
-    top = _git(repo, "rev-parse", "--show-toplevel").stdout.decode().strip()
-    specs = []
-    for d in exclude:
-        d = Path(d).resolve()
-        if top and d.is_relative_to(Path(top).resolve()):
-            specs.append(f":(exclude,top){d.relative_to(Path(top).resolve()).as_posix()}")
+    """git pathspecs leaving out the paths ``exclude`` (those inside ``repo``'s work tree;
+    others are ignored), after a ``--``; none for none."""
+    top = _toplevel(repo) if exclude else None
+    if top is None:
+        return []
+    paths = [Path(d).resolve() for d in exclude]
+    specs = [f":(exclude,top){d.relative_to(top).as_posix()}" for d in paths
+             if d.is_relative_to(top)]
     return ["--", ":/", *specs] if specs else []
 
 
@@ -178,7 +185,7 @@ def git_state(repo: str | os.PathLike | None = None,
               exclude=()) -> tuple[str, list[str]] | None:
     """``(HEAD sha, paths of modified tracked files)`` of ``repo`` (default: the package's
     checkout), or None without git or a commit. Untracked files do not count, nor files
-    under the directories ``exclude`` (a command's own outputs)."""
+    under the paths ``exclude`` (a command's own outputs)."""
     repo = Path(REPO if repo is None else repo)
     try:
         out = _git(repo, "rev-parse", "HEAD")

@@ -65,14 +65,10 @@ def refuse_dirty(outs, allow_dirty: bool = False, file: bool = False,
     targets = [o for o in outs if committable(o, file)]
     if not targets:
         return
-    sha, paths = state
-    top = _toplevel(Path(store.REPO if repo is None else repo))
-    if top is not None:
-        inside = [Path(o).resolve() for o in targets]
-        paths = [p for p in paths if not any((top / p).resolve().is_relative_to(d)
-                                              for d in inside)]
-    if not paths:
+    state = store.git_state(repo, exclude=targets)
+    if state is None or not state[1]:
         return
+    sha, paths = state
     n = len(paths)
     shown = ", ".join(paths[:SHOWN_PATHS]) + (", ..." if n > SHOWN_PATHS else "")
     files = f"{n} tracked file{'s' if n != 1 else ''}"
@@ -80,14 +76,3 @@ def refuse_dirty(outs, allow_dirty: bool = False, file: bool = False,
     raise DirtyTree(f"{where} is in a git work tree, where results are committed, but the code "
                     f"has uncommitted changes to {files} ({shown}); commit them, or pass "
                     f"--allow-dirty to record the results as {sha[:7]}-dirty-<hash of the diff>")
-
-
-def _toplevel(repo: Path) -> Path | None:
-    from groundtruth import store
-
-    try:
-        out = store._git(repo, "rev-parse", "--show-toplevel")
-    except (OSError, subprocess.SubprocessError):
-        return None
-    top = out.stdout.decode().strip()
-    return Path(top) if out.returncode == 0 and top else None

@@ -278,8 +278,8 @@ class ImplicitEnergyDissipation(ImplicitEnergy):
             coef.log_rate0 = self.dterms[t].log_rate0 + d * math.log(rho)
             if self.config.stiffness_prior == "features":
                 getattr(new, f"{t}_dprior").copy_(fitted_factor(
-                    torch.stack(self._damping_basis(t), 1), getattr(self, f"{t}_dprior"),
-                    new._dstatic(t), self._damping_basis_columns(t)))
+                    self._dstatic(t), getattr(self, f"{t}_dprior"), new._dstatic(t),
+                    self._damping_basis_columns(t)))
         return new
 
     def _damping_columns(self, xk, x1, h, skip: tuple = ()) -> tuple[list, list]:

@@ -80,16 +80,18 @@ class EnergyTransfer:
     def _transfer_prior(self, new: EnergyTransfer, kind: str) -> torch.Tensor:
         """``kappa`` of ``new``'s elements of ``kind``: this model's, fitted by least squares
         in its basis, on ``new``'s static features (floored as ``_set_stiffness`` does)."""
-        cols = self._basis_columns(kind)
-        return fitted_factor(torch.stack(self._basis(kind), 1), getattr(self, f"{kind}_prior"),
-                             getattr(new, f"{kind}_static"), cols)
+        return fitted_factor(getattr(self, f"{kind}_static"), getattr(self, f"{kind}_prior"),
+                             getattr(new, f"{kind}_static"), self._basis_columns(kind))
 
 
-def fitted_factor(basis: torch.Tensor, kappa: torch.Tensor, static: torch.Tensor,
+def fitted_factor(static: torch.Tensor, kappa: torch.Tensor, new_static: torch.Tensor,
                   cols: list) -> torch.Tensor:
-    """Per-element factors ``kappa (n,)`` fitted by least squares as ``basis (n, m) @ c``,
-    evaluated on other elements: ``[1, static[:, cols]] @ c``, floored at 1e-3 of their
-    largest (and 1e-300)."""
-    c = torch.linalg.lstsq(basis, kappa[:, None]).solution[:, 0]
-    new = torch.cat([torch.ones_like(static[:, :1]), static[:, cols]], 1) @ c
+    """Per-element factors ``kappa (n,)`` fitted by least squares in the basis
+    ``[1, static[:, cols]]`` of their elements' static features, evaluated on other elements:
+    ``[1, new_static[:, cols]] @ c``, floored at 1e-3 of their largest (and 1e-300)."""
+    def basis(f):
+        return torch.cat([torch.ones_like(f[:, :1]), f[:, cols]], 1)
+
+    c = torch.linalg.lstsq(basis(static), kappa[:, None]).solution[:, 0]
+    new = basis(new_static) @ c
     return new.clamp(min=max(1e-3 * float(new.abs().max()), 1e-300))
