@@ -93,22 +93,50 @@ class Assembler:
             if solver != "banded":
                 active = np.ones(ndof, bool) if resting is None else ~np.asarray(resting, bool)
                 self.sparse = SparseSolver(self._indptr, self._indices, active)
-        self._dropped = np.flatnonzero(~keep)
-        self._n_el_entries = rows.size - ndof
+        self._keep = keep
+        sizes = [d.shape[0] * d.shape[1] ** 2 for d in self.element_dofs]
+        self._starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        self._layouts = {}
+        self._layout(None)
 
-    def vector(self, grads: list[np.ndarray]) -> np.ndarray:
-        """Sum element vectors ``(n_el, d)`` into a global ``(ndof,)`` vector."""
+    def _layout(self, used) -> tuple:
+        """``(positions, dropped entries, number of element entries)`` of the concatenated
+        values when only the terms flagged in ``used`` are assembled (all for ``None``)."""
+        key = None if used is None or all(used) else tuple(bool(u) for u in used)
+        if key not in self._layouts:
+            if key is None:
+                pos, keep = self._pos, self._keep
+                n_el = int(self._starts[-1])
+            else:
+                idx = np.concatenate([np.arange(self._starts[i], self._starts[i + 1])
+                                      for i, u in enumerate(key) if u]
+                                     + [np.arange(self._starts[-1], self._pos.size)])
+                pos, keep = self._pos[idx], self._keep[idx]
+                n_el = idx.size - self.ndof
+            self._layouts[key] = (pos, np.flatnonzero(~keep), n_el)
+        return self._layouts[key]
+
+    def _used_dofs(self, used) -> list:
+        return self.element_dofs if used is None else [
+            d for d, u in zip(self.element_dofs, used) if u]
+
+    def vector(self, grads: list[np.ndarray], used: list[bool] | None = None) -> np.ndarray:
+        """Sum element vectors ``(n_el, d)`` into a global ``(ndof,)`` vector; with ``used``
+        (one flag per term), ``grads`` holds the flagged terms' only (the others add 0)."""
         out = np.zeros(self.ndof)
-        for dofs, g in zip(self.element_dofs, grads):
+        for dofs, g in zip(self._used_dofs(used), grads):
             out += np.bincount(dofs.ravel(), weights=g.ravel(), minlength=self.ndof)
         return out
 
-    def matrix(self, hessians: list[np.ndarray], diagonal: np.ndarray) -> SystemMatrix:
-        """Assemble ``sum(element Hessians) + diag(diagonal)`` with fixed dofs set to identity."""
+    def matrix(self, hessians: list[np.ndarray], diagonal: np.ndarray,
+               used: list[bool] | None = None) -> SystemMatrix:
+        """Assemble ``sum(element Hessians) + diag(diagonal)`` with fixed dofs set to identity;
+        with ``used`` (one flag per term), ``hessians`` holds the flagged terms' only."""
+        pos, dropped, n_el = self._layout(used)
         vals = np.concatenate([h.ravel() for h in hessians] + [diagonal])
-        vals[self._dropped] = 0.0  # entries of clamped rows and columns (a few)
-        vals[self._n_el_entries:][self.fixed] = 1.0
-        data = np.bincount(self._pos, weights=vals, minlength=self._size)
+        vals[dropped] = 0.0  # entries of clamped rows and columns (a few)
+        vals[n_el:][self.fixed] = 1.0
+        data = np.bincount(pos, weights=vals, minlength=self._size)
         if self.banded:
             return SystemMatrix(band=data.reshape(2 * self.bandwidth + 1, self.ndof),
                                 bandwidth=self.bandwidth)

@@ -246,6 +246,25 @@ class HingeTerm:
         theta_bar = dihedral_angle(x[h[:, 0]], x[h[:, 1]], x[h[:, 2]], x[h[:, 3]])
         return cls(h, theta_bar, k_b)
 
+    def flat_at_rest(self, xe: np.ndarray) -> bool:
+        """True when every hinge lies flat, rests flat and is not folded over: the four nodes
+        of each hinge share one z (so e, p, m lie in the x-y plane), ``theta_bar = 0`` and
+        ``c > 0`` (so ``theta = 0`` exactly). Then, exactly in floating point, the energy and
+        the gradient are 0 (``theta - theta_bar = 0``) and the Hessian
+        ``k_b grad theta grad theta^T`` has nonzero entries only between z coordinates:
+        ``grad theta = (c grad s - s grad c) / r^2`` with ``s = -|e| V = 0`` and ``grad s``
+        along z (every cross product of in-plane vectors is). An in-plane plate whose z is at
+        rest therefore gets nothing from its hinges on x and y (``MechanicalSystem`` skips
+        them there)."""
+        z = xe[:, 2::3]
+        if not (np.all(self.theta_bar == 0.0) and np.all(z == z[:, :1])):
+            return False
+        e, p, m = xe[:, 3:5] - xe[:, 0:2], xe[:, 6:8] - xe[:, 0:2], xe[:, 9:11] - xe[:, 0:2]
+        ee = np.einsum("ni,ni->n", e, e)
+        c = (np.einsum("ni,ni->n", e, m) * np.einsum("ni,ni->n", e, p)
+             - ee * np.einsum("ni,ni->n", p, m))
+        return bool(np.all(c > 0))
+
     def evaluate(self, xe: np.ndarray, order: int):
         return hinge_energy(xe[:, 0:3], xe[:, 3:6], xe[:, 6:9], xe[:, 9:12],
                             self.theta_bar, self.k_b, order)

@@ -69,6 +69,13 @@ class MechanicalSystem:
             raise ValueError(f"damping and fixed_nodes must have shape ({n},)")
         self.assembler = Assembler([t.dofs for t in self.terms], 3 * n, self.fixed_dofs,
                                    self.linear_solver, self.resting_dofs)
+        # terms that may act on resting dofs only: skipped where they do (``_active_terms``)
+        resting = self.resting_dofs
+        self._restable = [self.assembler.sparse is not None and resting is not None
+                          and hasattr(t, "flat_at_rest") and bool(resting[t.dofs[:, 2::3]].all())
+                          and not resting[t.dofs[:, 0::3]].any()
+                          and not resting[t.dofs[:, 1::3]].any()
+                          for t in self.terms]
 
     @property
     def n_nodes(self) -> int:
@@ -94,15 +101,33 @@ class MechanicalSystem:
         """Total elastic energy (J)."""
         return float(sum(t.evaluate(q[t.dofs], 0)[0].sum() for t in self.terms))
 
+    def _evaluate(self, q: np.ndarray, order: int) -> list:
+        """Per term: ``evaluate(q[dofs], order)``, or ``None`` for a term that acts on resting
+        dofs only at ``q``.
+
+        Such a term (``flat_at_rest``: the hinges of a flat plate that stays in its plane, with
+        z at rest) has gradient exactly 0 and Hessian entries only between resting dofs, which
+        the sparse solver leaves out of the factorization; skipping it leaves every assembled
+        value it factors, and every Newton iterate, bit for bit as they were. Only on the sparse
+        path (the band LU factors the resting rows too)."""
+        out = []
+        for t, restable in zip(self.terms, self._restable):
+            xe = q[t.dofs]
+            out.append(None if restable and t.flat_at_rest(xe) else t.evaluate(xe, order))
+        return out
+
     def gradient(self, q: np.ndarray) -> np.ndarray:
         """Gradient of the elastic energy ``(3N,)`` (N); minus the internal force."""
-        return self.assembler.vector([t.evaluate(q[t.dofs], 1)[1] for t in self.terms])
+        out = self._evaluate(q, 1)
+        return self.assembler.vector([o[1] for o in out if o is not None],
+                                     [o is not None for o in out])
 
     def gradient_hessian(self, q: np.ndarray, diagonal: np.ndarray) -> tuple[np.ndarray, SystemMatrix]:
         """Elastic gradient and ``hessian + diag(diagonal)`` with clamped dofs as identity."""
-        out = [t.evaluate(q[t.dofs], 2) for t in self.terms]
-        g = self.assembler.vector([o[1] for o in out])
-        return g, self.assembler.matrix([o[2] for o in out], diagonal)
+        out = self._evaluate(q, 2)
+        used = [o is not None for o in out]
+        g = self.assembler.vector([o[1] for o in out if o is not None], used)
+        return g, self.assembler.matrix([o[2] for o in out if o is not None], diagonal, used)
 
     def hessian(self, q: np.ndarray) -> np.ndarray:
         """Dense elastic Hessian (tests only); clamped dofs are not removed."""

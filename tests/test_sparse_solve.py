@@ -158,3 +158,68 @@ def test_missing_pardiso_falls_back_to_superlu(monkeypatch):
     system = get_case("plate_cantilever@r4").system(5e6)
     assert system.assembler.sparse.backend == "superlu"
     assert list(SPARSE_BACKENDS)[-1] == "superlu"
+
+
+def _flat_hinges(n, seed):
+    """``n`` random flat, unfolded hinges ``(n, 12)`` at a common random z: x2 on one side of
+    the edge, x3 on the other."""
+    rng = np.random.default_rng(seed)
+    x0 = rng.normal(size=(n, 2))
+    e = rng.normal(size=(n, 2))
+    normal = np.stack([-e[:, 1], e[:, 0]], axis=1)
+    x1 = x0 + e
+    x2 = x0 + rng.uniform(0.1, 0.9, (n, 1)) * e + rng.uniform(0.2, 1.0, (n, 1)) * normal
+    x3 = x0 + rng.uniform(0.1, 0.9, (n, 1)) * e - rng.uniform(0.2, 1.0, (n, 1)) * normal
+    z = np.full((n, 1), rng.normal())
+    return np.concatenate([np.concatenate([x, z], axis=1) for x in (x0, x1, x2, x3)], axis=1)
+
+
+def test_flat_hinges_act_on_z_only():
+    """What lets an in-plane plate skip its hinges: flat at rest, their energy and gradient are
+    exactly 0 and their Hessian is exactly 0 wherever an x or y coordinate is involved."""
+    from groundtruth.hinge import HingeTerm
+
+    xe = _flat_hinges(200, 0)
+    term = HingeTerm(np.arange(800).reshape(200, 4), 0.0, np.linspace(1.0, 3.0, 200))
+    assert term.flat_at_rest(xe)
+    energy, grad, hess = term.evaluate(xe, 2)
+    assert np.all(energy == 0) and np.all(grad == 0)
+    inplane = np.ones(12, bool)
+    inplane[2::3] = False
+    assert np.all(hess[:, inplane, :] == 0) and np.all(hess[:, :, inplane] == 0)
+    assert np.any(hess[:, ~inplane][:, :, ~inplane] != 0)  # bending out of the plane is there
+
+
+@pytest.mark.parametrize("change", ["lifted", "folded", "bent at rest"])
+def test_hinges_that_are_not_flat_at_rest_are_kept(change):
+    from groundtruth.hinge import HingeTerm
+
+    xe = _flat_hinges(50, 1)
+    theta_bar = np.zeros(50)
+    if change == "lifted":
+        xe[7, 11] += 1e-9                      # x3 of one hinge out of the plane
+    elif change == "folded":
+        xe[7, 9:11] = 2 * xe[7, 6:8] - xe[7, 0:2]  # x3 onto x2's side: a hinge folded over
+    else:
+        theta_bar[7] = 0.1
+    assert not HingeTerm(np.arange(200).reshape(50, 4), theta_bar, 1.0).flat_at_rest(xe)
+
+
+def test_in_plane_plate_skips_its_hinges_bit_for_bit():
+    """plate_cantilever at r = 4 (sparse path, z at rest) skips its hinges; its trajectory is
+    the one with the hinges evaluated and assembled, bit for bit."""
+    case = get_case("plate_cantilever@r4")
+    system = case.system(case.reference_youngs)
+    assert system.assembler.sparse is not None and system._restable == [False, True]
+    q0, v0 = case.initial_state()
+    assert system._evaluate(q0.ravel(), 2)[1] is None
+    t = np.arange(4) * case.solver_settings.dt
+    skipped = implicit.simulate(system, q0.ravel(), v0.ravel(), t, case.solver_settings)[0]
+    system._restable = [False, False]
+    kept = implicit.simulate(system, q0.ravel(), v0.ravel(), t, case.solver_settings)[0]
+    assert np.array_equal(skipped, kept)
+
+
+def test_band_path_evaluates_every_term():
+    system = get_case("plate_cantilever").system(5e6)
+    assert system.assembler.sparse is None and not any(system._restable)
