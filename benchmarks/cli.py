@@ -16,7 +16,7 @@ from pathlib import Path
 
 COMMANDS = ["generate", "simulate", "export", "crosscheck", "plate_fidelity", "compare", "train",
             "rollout", "animate", "bench", "run", "tolerance", "convert_checkpoint",
-            "curves"]
+            "curves", "convergence"]
 
 
 def build_parser() -> argparse.ArgumentParser:
