@@ -71,6 +71,11 @@ from meshodenet.mesh.data import Mesh, Trajectories
 from meshodenet.training.presets import preset_configs
 from meshodenet.training.train import TrainConfig
 
+#: Bytes per activation of the element MLPs in the least-squares start's pass over the
+#: training frames (``ImplicitEnergy._balance_columns``), which takes the frames in chunks of
+#: this size: a bound on its memory whatever the mesh or the number of frames.
+FIT_CHUNK_BYTES = 16 * 2**20
+
 
 class ImplicitEnergy(EnergyTransfer, TrajectoryModel):
     """See the module docstring. Shapes as ``TrajectoryModel``. ``solver`` (an attribute, a
@@ -474,15 +479,29 @@ class ImplicitEnergy(EnergyTransfer, TrajectoryModel):
     # --- statistics and initial stiffness (training split only) ------------------------------
     @torch.no_grad()
     def _statistics(self, train: Trajectories) -> None:
+        """``ystats`` and each type's ``sigma`` (and ``qrange``) over every training frame.
+        One trajectory at a time in float64: the squared one-step motions and the measures
+        ``q`` of all frames are gathered into one tensor each (their means over the same
+        tensors as before, the same bits), never the float64 positions of the whole split or
+        their gather onto the elements (``(B, T, n, k, 3)``, 10-30 times the split's size)."""
         y = train.youngs.to(torch.float64)
         ly = torch.log(y)
         sd = float(ly.std()) if len(y) > 1 and float(ly.std()) > 0 else 1.0
-        pos = train.pos.to(torch.float64)
-        step = (pos[:, 1:] - pos[:, :-1])[:, :, self.free]
+        B, T = train.pos.shape[:2]
+        f64 = dict(dtype=torch.float64, device=self.ystats.device)
+        elems = self._elems()
+        step2 = torch.empty(B, T - 1, int(self.free.sum()), **f64)
+        qs = {k: torch.empty(B, T, len(nodes), **f64) for k, (nodes, *_) in elems.items()}
+        for b in range(B):
+            pos = train.pos[b].to(torch.float64)
+            step2[b] = ((pos[1:] - pos[:-1])[:, self.free] ** 2).sum(-1)
+            for k, (nodes, _, rest, l0) in elems.items():
+                qs[k][b] = measure(k, pos[:, nodes], rest, l0)
         self.ystats.copy_(torch.tensor([float(y.mean()), float(ly.mean()), sd,
-                                        float((step**2).sum(-1).mean())]))
-        for k, (nodes, _, rest, l0) in self._elems().items():
-            q = measure(k, pos[:, :, nodes], rest, l0)
+                                        float(step2.mean())]))
+        del step2
+        for k in elems:
+            q = qs.pop(k)
             rms = float(torch.sqrt((q**2).mean()))
             getattr(self, f"{k}_sigma").fill_(rms if rms > 0 else 1.0)
             if self.config.clamp_q:
@@ -496,17 +515,19 @@ class ImplicitEnergy(EnergyTransfer, TrajectoryModel):
         samples = samples.to(data.pos.device)
         T = data.n_frames
         traj, k = samples // (T - 1), samples % (T - 1)
-        pos = data.pos.to(torch.float64)
+        # the samples' frames, then float64 (not the whole split converted per training step)
+        pos = lambda j: data.pos[traj, j].to(torch.float64)  # noqa: E731
         t = data.t.to(torch.float64)
         h = t[k + 1] - t[k]
         if not torch.allclose(h, h[0].expand_as(h), rtol=1e-4):
             raise ValueError("implicit_energy trains on evenly sampled trajectories only")
         hk = (t[k] - t[(k - 1).clamp(min=0)]).clamp_min(1e-300)[:, None, None]
+        xk = pos(k)
         vk = torch.where((k == 0)[:, None, None], data.vel[traj, 0].to(torch.float64),
-                         (pos[traj, k] - pos[traj, (k - 1).clamp(min=0)]) / hk)
+                         (xk - pos((k - 1).clamp(min=0))) / hk)
         if self.config.integrator == "newmark":
             vk = data.vel[traj, k].to(torch.float64)
-        return traj, pos[traj, k], vk * self.free[:, None], pos[traj, k + 1], float(h[0])
+        return traj, xk, vk * self.free[:, None], pos(k + 1), float(h[0])
 
     @torch.no_grad()
     def _fit_log_stiffness(self, train: Trajectories, every: int = 5) -> None:
@@ -544,7 +565,29 @@ class ImplicitEnergy(EnergyTransfer, TrajectoryModel):
         """The least-squares fit's columns: the forces on the free nodes at ``x1 (B, N, 3)``
         of each element type with ``g = 1`` (``uniform``), or of each of its basis functions
         (``features``, ``_basis``) as the elements' stiffness; and per column ``(kind,
-        basis function)`` (``features`` only)."""
+        basis function)`` (``features`` only). The frames go through the element MLPs in
+        chunks (``fit_chunk``): every frame's columns are computed alone, so the chunks
+        give the same bits as one pass, whose activations (``(B, n, hidden)`` float64, about
+        ten of them) took 2.9 GB on the plate's training split."""
+        B = len(x1)
+        step = self.fit_chunk()
+        cols, owner = None, []
+        for s in range(0, B, step):
+            part, owner = self._balance_block(youngs[s:s + step], x1[s:s + step])
+            if cols is None:
+                cols = [c.new_empty(B, c.shape[1]) for c in part]
+            for c, p in zip(cols, part):
+                c[s:s + step] = p
+        return [c.reshape(-1) for c in cols], owner
+
+    def fit_chunk(self) -> int:
+        """Frames per chunk of ``_balance_columns``: ``FIT_CHUNK_BYTES`` per activation of
+        the widest element type's MLP (at least one frame)."""
+        per = max(len(getattr(self, f"{k}_nodes")) for k in self.kinds) * self.config.hidden * 8
+        return max(1, FIT_CHUNK_BYTES // max(per, 1))
+
+    def _balance_block(self, youngs, x1) -> tuple[list, list]:
+        """``_balance_columns`` of the frames ``x1 (b, N, 3)``: columns ``(b, 3 n_free)``."""
         lhs, owner = [], []
         B, N = x1.shape[:2]
         for k in self.kinds:
@@ -552,7 +595,7 @@ class ImplicitEnergy(EnergyTransfer, TrajectoryModel):
                                {k: getattr(self, f"{k}_sigma")}, youngs, float(self.ystats[0]),
                                (float(self.ystats[1]), float(self.ystats[2])))
             if self.config.stiffness_prior == "uniform":
-                lhs.append(one.gradient(x1)[:, self.free].reshape(-1))
+                lhs.append(one.gradient(x1)[:, self.free].reshape(B, -1))
                 continue
             q, dq, _ = one.geometry(x1, second=False)[k]
             d1, _ = one.derivatives(k, q, 1, False)  # g = 1: the force is linear in kappa
@@ -560,7 +603,7 @@ class ImplicitEnergy(EnergyTransfer, TrajectoryModel):
             for phi in self._basis(k):
                 f = x1.new_zeros(B, 3 * N).index_add(1, dofs, ((d1 * phi)[..., None] * dq)
                                                      .reshape(B, -1))
-                lhs.append(f.reshape(B, N, 3)[:, self.free].reshape(-1))
+                lhs.append(f.reshape(B, N, 3)[:, self.free].reshape(B, -1))
                 owner.append((k, phi))
         return lhs, owner
 
