@@ -15,7 +15,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 
-from meshodenet.energy import model as energy_model
+from meshodenet.energy import start as energy_start
 from meshodenet.energy.core import measure
 from meshodenet.energy.model import EnergyConfig, ImplicitEnergy
 from meshodenet.gnn import network
@@ -61,7 +61,7 @@ def test_least_squares_columns_in_chunks_are_the_same_bits(make, monkeypatch):
     youngs = data.youngs[traj]
     out = {}
     for name, chunk_bytes in (("one pass", 2**50), ("chunks", 1)):  # 1: 64 frames a chunk
-        monkeypatch.setattr(energy_model, "FIT_CHUNK_BYTES", chunk_bytes)
+        monkeypatch.setattr(energy_start, "FIT_CHUNK_BYTES", chunk_bytes)
         with Largest() as mode:
             out[name] = (model._balance_columns(youngs, x1), mode.nbytes)
     (cols, owner), one_pass = out["one pass"]
@@ -71,7 +71,7 @@ def test_least_squares_columns_in_chunks_are_the_same_bits(make, monkeypatch):
     n = max(len(getattr(model, f"{k}_nodes")) for k in model.kinds)
     assert one_pass >= len(x1) * n * 64 * 8  # an activation of every frame
     assert len(x1) == 320 and in_chunks * 4 < one_pass
-    monkeypatch.setattr(energy_model, "FIT_CHUNK_BYTES", 2**20 * n * 64 * 8 + 100)
+    monkeypatch.setattr(energy_start, "FIT_CHUNK_BYTES", 2**20 * n * 64 * 8 + 100)
     assert model.fit_chunk() == 2**20
 
 
