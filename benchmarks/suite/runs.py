@@ -342,7 +342,9 @@ def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_di
                    device: str = "auto", progress: bool = True, on_epoch_end=None,
                    evaluate: bool = True, t_start: float | None = None) -> dict:
     """Train the resolved run ``r`` (``resolve_run``) into ``out``: continue it when
-    ``decision`` (``decide_run``) is ``resume``, else start it; returns the summary."""
+    ``decision`` (``decide_run``) is ``resume``, else start it; returns the summary.
+    ``r["arrays"]`` (the training file's float64 arrays) is taken out of ``r``: training
+    keeps only the float32 tensors of its training and validation trajectories."""
     import torch
 
     from meshodenet.mesh.data import Trajectories
@@ -350,7 +352,7 @@ def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_di
 
     t_start = time.time() if t_start is None else t_start
     out = Path(out)
-    case, spec, arrays, mesh = r["case"], r["spec"], r["arrays"], r["mesh"]
+    case, spec, mesh = r["case"], r["spec"], r["mesh"]
     config = dict(r["config"])
     train_cfg, model_cfg, tr_idx, val_idx = r["train_cfg"], r["model_cfg"], r["tr_idx"], r["val_idx"]
     cfg_path = out / CONFIG_FILE
@@ -368,8 +370,9 @@ def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_di
     if lead:
         store.save_json(cfg_path, config)
 
-    full = Trajectories.from_arrays(arrays, device=dev)
+    full = Trajectories.from_arrays(r.pop("arrays"), device=dev)
     train, val = full.subset(torch.as_tensor(tr_idx)), full.subset(torch.as_tensor(val_idx))
+    del full  # the subsets are copies: the whole file's tensors need not stay for training
     torch.manual_seed(train_cfg.seed)
     model = spec.build(mesh, model_cfg, train).to(dev)
     broadcast_parameters(model)

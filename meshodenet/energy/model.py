@@ -60,10 +60,10 @@ from meshodenet.energy.core import (
     BatchedEnergy,
     ElementEnergy,
     EnergySystem,
-    measure,
     static_features,
 )
 from meshodenet.energy.planar import PlanarLineEnergy
+from meshodenet.energy.start import LeastSquaresStart
 from meshodenet.energy.transfer import EnergyTransfer, element_kinds
 from meshodenet.integrators.implicit import NewtonError
 from meshodenet.interface import TrajectoryModel
@@ -72,7 +72,7 @@ from meshodenet.training.presets import preset_configs
 from meshodenet.training.train import TrainConfig
 
 
-class ImplicitEnergy(EnergyTransfer, TrajectoryModel):
+class ImplicitEnergy(LeastSquaresStart, EnergyTransfer, TrajectoryModel):
     """See the module docstring. Shapes as ``TrajectoryModel``. ``solver`` (an attribute, a
     key of ``SOLVERS``, default ``batched``) chooses how rollouts without gradients step;
     rollouts with gradients and training always take the reference steps."""
@@ -470,111 +470,6 @@ class ImplicitEnergy(EnergyTransfer, TrajectoryModel):
                 ab[:, 0] += diag
             return phi, dU, ab
         return evaluate
-
-    # --- statistics and initial stiffness (training split only) ------------------------------
-    @torch.no_grad()
-    def _statistics(self, train: Trajectories) -> None:
-        y = train.youngs.to(torch.float64)
-        ly = torch.log(y)
-        sd = float(ly.std()) if len(y) > 1 and float(ly.std()) > 0 else 1.0
-        pos = train.pos.to(torch.float64)
-        step = (pos[:, 1:] - pos[:, :-1])[:, :, self.free]
-        self.ystats.copy_(torch.tensor([float(y.mean()), float(ly.mean()), sd,
-                                        float((step**2).sum(-1).mean())]))
-        for k, (nodes, _, rest, l0) in self._elems().items():
-            q = measure(k, pos[:, :, nodes], rest, l0)
-            rms = float(torch.sqrt((q**2).mean()))
-            getattr(self, f"{k}_sigma").fill_(rms if rms > 0 else 1.0)
-            if self.config.clamp_q:
-                qh = q / getattr(self, f"{k}_sigma")
-                getattr(self, f"{k}_qrange").copy_(torch.stack([qh.min(), qh.max()]))
-
-    def _frames(self, data: Trajectories, samples: torch.Tensor):
-        """``(traj, x_k, v_k, x_{k+1}, h)`` of samples, float64: ``v_k`` the backward
-        difference (the stored ``v_0`` at frame 0) as in a backward-Euler rollout; Newmark's,
-        whose velocity is the trajectory's own, the stored one."""
-        samples = samples.to(data.pos.device)
-        T = data.n_frames
-        traj, k = samples // (T - 1), samples % (T - 1)
-        pos = data.pos.to(torch.float64)
-        t = data.t.to(torch.float64)
-        h = t[k + 1] - t[k]
-        if not torch.allclose(h, h[0].expand_as(h), rtol=1e-4):
-            raise ValueError("implicit_energy trains on evenly sampled trajectories only")
-        hk = (t[k] - t[(k - 1).clamp(min=0)]).clamp_min(1e-300)[:, None, None]
-        vk = torch.where((k == 0)[:, None, None], data.vel[traj, 0].to(torch.float64),
-                         (pos[traj, k] - pos[traj, (k - 1).clamp(min=0)]) / hk)
-        if self.config.integrator == "newmark":
-            vk = data.vel[traj, k].to(torch.float64)
-        return traj, pos[traj, k], vk * self.free[:, None], pos[traj, k + 1], float(h[0])
-
-    @torch.no_grad()
-    def _fit_log_stiffness(self, train: Trajectories, every: int = 5) -> None:
-        """``a_t`` from the least-squares momentum balance of the training frames with
-        ``g = 1``: the stiffness scales that best explain ``m a + c v - f`` (free nodes).
-        With ``stiffness_prior = features`` each element's stiffness is
-        ``k_e = theta_t . (1, s_e)`` (``s_e`` its static features, the constant ones left
-        out), floored at 1e-3 of its type's largest; ``a_t = log mean_e k_e`` and the factor
-        ``kappa_e = k_e / mean_e k_e``."""
-        T = train.n_frames
-        samples = torch.arange(0, len(train) * (T - 1), every)
-        traj, xk, vk, x1, h = self._frames(train, samples)
-        lhs, owner = self._balance_columns(train.youngs[traj], x1)
-        m, c = self.mass[:, None], self.damping[:, None]
-        rhs = -(m / h**2 * (x1 - xk - h * vk) + c / h * (x1 - xk) - self.force)[:, self.free]
-        G = torch.stack(lhs, 1)
-        s = torch.linalg.lstsq(G, rhs.reshape(-1, 1)).solution[:, 0]
-        self._set_stiffness(s, owner)
-
-    def _set_stiffness(self, s: torch.Tensor, owner: list) -> None:
-        """``a_t`` (and ``kappa_e``) from the least-squares solution ``s`` over the columns
-        of ``_balance_columns`` (``owner`` as it returns)."""
-        if self.config.stiffness_prior == "uniform":
-            for k, sk in zip(self.kinds, s):
-                sk = float(sk) if float(sk) > 0 else 1e-3 * float(s.abs().max())
-                self.terms[k].log_stiffness.fill_(math.log(max(sk, 1e-30)))
-            return
-        for k in self.kinds:
-            ke = sum(float(sj) * phi for (kind, phi), sj in zip(owner, s) if kind == k)
-            ke = ke.clamp(min=max(1e-3 * float(ke.abs().max()), 1e-300))
-            self.terms[k].log_stiffness.fill_(math.log(float(ke.mean())))
-            getattr(self, f"{k}_prior").copy_(ke / ke.mean())
-
-    def _balance_columns(self, youngs, x1) -> tuple[list, list]:
-        """The least-squares fit's columns: the forces on the free nodes at ``x1 (B, N, 3)``
-        of each element type with ``g = 1`` (``uniform``), or of each of its basis functions
-        (``features``, ``_basis``) as the elements' stiffness; and per column ``(kind,
-        basis function)`` (``features`` only)."""
-        lhs, owner = [], []
-        B, N = x1.shape[:2]
-        for k in self.kinds:
-            one = EnergySystem(nn.ModuleDict({k: self.terms[k]}), {k: self._elems()[k]},
-                               {k: getattr(self, f"{k}_sigma")}, youngs, float(self.ystats[0]),
-                               (float(self.ystats[1]), float(self.ystats[2])))
-            if self.config.stiffness_prior == "uniform":
-                lhs.append(one.gradient(x1)[:, self.free].reshape(-1))
-                continue
-            q, dq, _ = one.geometry(x1, second=False)[k]
-            d1, _ = one.derivatives(k, q, 1, False)  # g = 1: the force is linear in kappa
-            dofs = one._dofs(k, N).reshape(-1)
-            for phi in self._basis(k):
-                f = x1.new_zeros(B, 3 * N).index_add(1, dofs, ((d1 * phi)[..., None] * dq)
-                                                     .reshape(B, -1))
-                lhs.append(f.reshape(B, N, 3)[:, self.free].reshape(-1))
-                owner.append((k, phi))
-        return lhs, owner
-
-    def _basis(self, kind: str) -> list:
-        """The functions ``(n,)`` of the elements of ``kind`` a ``features`` least-squares
-        stiffness is made of: ones and each static feature that varies over the elements
-        (``_basis_columns``)."""
-        static = getattr(self, f"{kind}_static")
-        return [torch.ones_like(static[:, 0])] + [static[:, j] for j in self._basis_columns(kind)]
-
-    def _basis_columns(self, kind: str) -> list:
-        """The static features (columns) of ``_basis``: those that vary over the elements."""
-        static = getattr(self, f"{kind}_static")
-        return [j for j in range(static.shape[1]) if bool(static[:, j].abs().max() > 0)]
 
     # --- training -----------------------------------------------------------------------------
     def n_training_samples(self, data: Trajectories) -> int:

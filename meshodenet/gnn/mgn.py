@@ -224,8 +224,15 @@ class MeshGraphNet(TrajectoryModel):
             moving = std > 0
             std[moving] = std[moving].pow(2).mean().sqrt()
         free = torch.as_tensor(self.mesh.node_type == 0, device=train.pos.device)
-        step = (train.pos[:, 1:] - train.pos[:, :-1])[:, :, free].double()
-        sq = step.pow(2).reshape(-1, 3).mean(0)[self.active > 0]
+        # one trajectory at a time into one float64 tensor (the mean over it as before):
+        # not the float32 differences, their copy on the free nodes and two float64 copies
+        # of the whole split at once
+        B, T = train.pos.shape[:2]
+        step = torch.empty(B, T - 1, int(free.sum()), 3, dtype=torch.float64,
+                           device=train.pos.device)
+        for b in range(B):
+            step[b] = (train.pos[b, 1:] - train.pos[b, :-1])[:, free]
+        sq = step.pow_(2).reshape(-1, 3).mean(0)[self.active > 0]
         self.step_rms.fill_(float(sq.mean().sqrt()) if sq.numel() and step.numel() else 0.0)
 
     # --- one step -----------------------------------------------------------------------------
