@@ -74,8 +74,9 @@ def run(args):
     from benchmarks.suite.runs import pick_device
 
     pick_device(args.device)  # a bad --device fails here, not in every worker
+    table = Path(suite.name) / ("transfer" if suite.resolutions else "") / "rmse_at_step.csv"
     if args.compare_with is not None:
-        base = Path(args.compare_with) / suite.name / "rmse_at_step.csv"
+        base = Path(args.compare_with) / table
         if Path(args.results).resolve() == Path(args.compare_with).resolve():
             raise ValueError("--compare-with names the --results directory itself; results "
                              "would be compared with themselves")
@@ -84,6 +85,10 @@ def run(args):
 
     refuse_dirty([args.results, args.runs_dir], args.allow_dirty)
 
+    if args.tables_only and suite.resolutions:
+        raise ValueError(f"--tables-only rewrites a suite's tables; suite {suite.name!r} writes "
+                         "its runs' rollouts on finer meshes (transfer/), rerun it without "
+                         "--tables-only (stored rollouts are reused)")
     if args.tables_only:
         paths = rewrite_tables(args.results, suite, data_dir=args.data_dir,
                                figures=not args.no_figures)
@@ -97,7 +102,7 @@ def run(args):
                     executor=args.executor, scheduler=args.scheduler,
                     costs=None if args.compare_with is None
                     else Path(args.compare_with) / suite.name / "runs.csv")
-    print((res["results"] / "rmse_at_step.md").read_text())
+    print(res["paths"]["markdown"].read_text())
     if args.compare_with is None:
         return 0
     if not base.exists():
@@ -109,7 +114,7 @@ def run(args):
     tol_file = base.parent / TOLERANCE_FILE
     use_tol = args.rtol is None and tol_file.exists()
     rtol = suite.compare_rtol if args.rtol is None else args.rtol
-    new = res["results"] / "rmse_at_step.csv"
+    new = res["paths"]["rmse_at_step"]
     result = compare(read_csv(base), read_csv(new), rtol=rtol, atol=0.0,
                      names=(str(base), str(new)),
                      tolerances=read_csv(tol_file) if use_tol else None, subset=True)
