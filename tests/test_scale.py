@@ -94,7 +94,7 @@ def test_transfer_writes_the_tables(transfer):
     out = tmp / "results" / suite.name
     t = out / "transfer"
     assert res["paths"]["rmse_at_step"] == t / "rmse_at_step.csv"
-    assert (out / "runs.csv").exists() and not (out / "rmse_at_step.csv").exists()
+    assert sorted(p.name for p in out.iterdir()) == ["transfer"]  # beside others' files
     table = pd.read_csv(t / "rmse_at_step.csv")
     quick_cols = pd.read_csv(Path(__file__).parents[1] / "results" / "quick" / "rmse_at_step.csv",
                              nrows=1).columns
@@ -116,7 +116,7 @@ def test_transfer_writes_the_tables(transfer):
     runs = pd.read_csv(t / "runs.csv")
     assert len(runs) == 4 and set(runs["r"]) == {1, 2}
     assert {"git_sha", "host", "cpu_model", "version_torch", "rollout_wall_time_s",
-            "checkpoint_sha256"} <= set(runs.columns)
+            "checkpoint_sha256", "train_git_sha", "train_wall_time_s"} <= set(runs.columns)
     assert (t / "figures" / f"transfer_{case.id}.png").stat().st_size > 0
     md = (t / "rmse_at_step.md").read_text()
     assert "r = 2 (41 nodes)" in md and "implicit_energy" in md

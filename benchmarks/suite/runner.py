@@ -339,8 +339,8 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
               figures: bool = True, executor: str = "local", scheduler: str | None = None,
               costs: str | Path | None = None) -> dict:
     """Run ``suite`` and write ``results_dir/SUITE/``; returns paths and the records. A suite
-    with ``resolutions`` writes its runs' ``runs.csv`` and their rollouts on finer meshes,
-    ``results_dir/SUITE/transfer/`` (``benchmarks.suite.transfer``), instead of the tables.
+    with ``resolutions`` writes its runs' rollouts on finer meshes instead,
+    ``results_dir/SUITE/transfer/`` (``benchmarks.suite.transfer``).
 
     ``costs``: a ``runs.csv`` of an earlier run of the suite (``--compare-with``'s baseline):
     runs start longest recorded training first (``longest_first``); the results' order is
@@ -432,8 +432,6 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
         if suite.resolutions:  # the runs on finer meshes: RESULTS/SUITE/transfer/
             from benchmarks.suite.transfer import run_transfer
 
-            out.mkdir(parents=True, exist_ok=True)
-            write_csv(out / "runs.csv", runs_table(ordered), "runs")
             try:
                 paths = run_transfer(out, ordered, runs_dir, suite, data_dir=data_dir,
                                      jobs=jobs, threads=threads, plugin_files=plugin_files,

@@ -5,12 +5,12 @@ trains its runs on their case as any suite does (finished runs are reused), then
 checkpoint of every run out on the test split of its case at each resolution r, ``CASE@rN``
 (docs/SCALE.md: the same moduli, frames and physics on a mesh r times finer; only the test
 split is generated there), through ``TrajectoryModel.on_mesh`` (``runs.rollout_arrays``), and
-writes ``RESULTS/SUITE/``:
+writes ``RESULTS/SUITE/transfer/``:
 
-- ``runs.csv``: the training runs (as any suite's);
 - ``transfer/runs.csv``: one row per run and resolution: the rolled-out case, its nodes and
-  case hash, the rollout's wall time and peak memory, and where and with what it ran (git
-  commit, machine, CPU, threads, library versions);
+  case hash, the rollout's wall time and peak memory, where and with what it ran (git
+  commit, machine, CPU, threads, library versions), and the training run's commit, wall time
+  and best epoch;
 - ``transfer/metrics.csv``: tidy position RMSE per run, resolution, test trajectory and step
   (and each trajectory's whole rollout), as a suite's ``metrics.csv`` with ``r`` and ``nodes``;
 - ``transfer/rmse_at_step.csv``: the paper's table (``metrics.rmse_at_step_table``) per run
@@ -83,7 +83,8 @@ One row per run and resolution: the case rolled out on (`case`, `r`, `nodes`, `c
 the rollout's wall time over all test trajectories (`rollout_wall_time_s`; at r = 1 the
 suite's own test rollout) and peak resident memory of its process (`peak_rss_mb`, r > 1),
 whether a stored rollout was reused, the checkpoint's epoch and SHA-256, and the provenance of
-the rollout: git commit, host, CPU, threads, kernel settings, library versions, time.
+the rollout: git commit, host, CPU, threads, kernel settings, library versions, time; and of
+the training run: its commit (`train_git_sha`), wall time and best epoch.
 
 ## `rmse_at_step.md`
 
@@ -232,8 +233,10 @@ def run_transfer(out: Path, records: list, runs_dir: Path, suite, *, data_dir=No
             frames.append(df)
             rows[(rec["run"], 1)] = row
     tasks = {}
+    # coarsest first, then the runs whose rollout at r = 1 was quickest: an interrupted
+    # suite has done the most (the stored rollouts are reused when it is run again)
     for r in resolutions:
-        for rec in records:
+        for rec in sorted(records, key=lambda rec: rec.get("rollout_wall_time_s") or 0.0):
             if r > 1:
                 tasks[(rec["run"], r)] = (transfer_one, (
                     rec, str(runs_dir / rec["run"]), r, None if data_dir is None
@@ -271,7 +274,10 @@ def run_transfer(out: Path, records: list, runs_dir: Path, suite, *, data_dir=No
     metrics["nodes"] = metrics["nodes"].astype(int)
     metrics = metrics[list(ID_KEYS) + [c for c in metrics.columns if c not in ID_KEYS]]
     order = [(rec["run"], r) for r in resolutions for rec in records]
-    provenance = pd.DataFrame([_flat(rows[k]) for k in order])
+    trained = {rec["run"]: {"train_git_sha": rec.get("git_sha"), "train_wall_time_s":
+                            rec.get("train_wall_time_s"), "best_epoch": rec.get("best_epoch")}
+               for rec in records}
+    provenance = pd.DataFrame([{**_flat(rows[k]), **trained[k[0]]} for k in order])
     return write_tables(Path(out) / TRANSFER_DIR, metrics, provenance, tests, suite,
                         figures=figures)
 
