@@ -141,3 +141,20 @@ def test_transfer_rollouts_are_reused_until_the_checkpoint_changes(transfer):
     record = json.loads((run_dir / "record.json").read_text())
     row = transfer_one(record, str(run_dir), 2, str(root), 1, kw["plugin_files"], "cpu")
     assert row["reused"] is False and row["checkpoint_sha256"] == first["checkpoint_sha256"]
+
+
+def test_tables_only_writes_the_stored_rollouts_and_names_the_others(transfer, tmp_path):
+    """``meshbench run --tables-only`` of a suite with resolutions: nothing rolled out, the
+    rollouts not stored yet left out and named."""
+    from benchmarks.suite.transfer import stored_paths, tables_from_stored
+
+    suite, case, root, tmp, kw, res = transfer
+    for p in stored_paths(tmp / "runs" / "rod_tiny_test-mgn-smoke-s0", f"{case.id}@r2"):
+        p.unlink()
+    paths = tables_from_stored(suite, tmp_path, tmp / "runs", data_dir=root, figures=False)
+    table = pd.read_csv(paths["rmse_at_step"])
+    assert set(zip(table["model"], table["r"])) == {("mgn", 1), ("implicit_energy", 1),
+                                                    ("implicit_energy", 2)}
+    md = paths["markdown"].read_text()
+    assert "**Incomplete**: 1 rollout(s)" in md and "rod_tiny_test-mgn-smoke-s0 at r = 2" in md
+    assert not stored_paths(tmp / "runs" / "rod_tiny_test-mgn-smoke-s0", f"{case.id}@r2")[0].exists()

@@ -209,22 +209,26 @@ def test_cases(records: list, resolutions) -> list[str]:
 
 def run_transfer(out: Path, records: list, runs_dir: Path, suite, *, data_dir=None,
                  jobs: int = 1, threads: int = 1, plugin_files=(), device: str = "auto",
-                 figures: bool = True, progress: bool = True) -> dict:
+                 figures: bool = True, progress: bool = True, stored_only: bool = False) -> dict:
     """Generate the test splits of the suite's cases at its resolutions (r > 1), roll every
     run (``records``: the runner's) out on them and write ``out/transfer/``; returns the
-    paths written."""
+    paths written. ``stored_only`` (``meshbench run --tables-only``): generate and roll out
+    nothing, write the tables of the rollouts stored in the runs; those not stored yet are
+    left out and named in ``rmse_at_step.md``."""
     from benchmarks.suite.generate import generate
 
     resolutions = tuple(suite.resolutions)
     runs_dir = Path(runs_dir)
-    for cid in test_cases(records, [r for r in resolutions if r > 1]):
+    for cid in [] if stored_only else test_cases(records, [r for r in resolutions if r > 1]):
         rep = generate(get_case(cid), data_dir, progress=progress, splits=("test",),
                        on_wait=lambda pid, c=cid: _log(f"data {c}: process {pid or '?'} is "
                                                        "generating it; waiting for it"))
         _log(f"data {cid} (test split): " + ("up to date" if rep.reused else
                                              f"generated in {rep.wall_time_s:.0f} s"))
+    root = store.data_dir(data_dir)
     tests = {cid: store.load_split(get_case(cid), "test", data_dir)
-             for cid in test_cases(records, resolutions)}
+             for cid in test_cases(records, resolutions)
+             if not stored_only or (root / cid / "test.npz").exists()}
     nodes = {cid: int(a["pos"].shape[2]) for cid, a in tests.items()}
     frames, rows = [], {}
     for rec in records:
@@ -232,12 +236,21 @@ def run_transfer(out: Path, records: list, runs_dir: Path, suite, *, data_dir=No
             df, row = _at_r1(rec, runs_dir, nodes[rec["case"]])
             frames.append(df)
             rows[(rec["run"], 1)] = row
-    tasks = {}
+    tasks, missing = {}, []
     # coarsest first, then the runs whose rollout at r = 1 was quickest: an interrupted
     # suite has done the most (the stored rollouts are reused when it is run again)
     for r in resolutions:
         for rec in sorted(records, key=lambda rec: rec.get("rollout_wall_time_s") or 0.0):
-            if r > 1:
+            if r > 1 and stored_only:
+                cid = resolution_id(rec["case"], r)
+                found = cid in tests and _stored(
+                    runs_dir / rec["run"], cid, get_case(cid).hash(),
+                    store.sha256_file(runs_dir / rec["run"] / "best.pt"))
+                if found:
+                    rows[(rec["run"], r)] = {**found, "reused": True}
+                else:
+                    missing.append((rec["run"], r))
+            elif r > 1:
                 tasks[(rec["run"], r)] = (transfer_one, (
                     rec, str(runs_dir / rec["run"]), r, None if data_dir is None
                     else str(data_dir), threads, tuple(str(p) for p in plugin_files), device))
@@ -266,20 +279,47 @@ def run_transfer(out: Path, records: list, runs_dir: Path, suite, *, data_dir=No
                              f"{k[0]} at r = {k[1]}: {v}" for k, v in failures.items()))
     for r in resolutions:
         for rec in records:
-            if r > 1:
+            if r > 1 and (rec["run"], r) not in missing:
                 frames.append(pd.read_csv(stored_paths(runs_dir / rec["run"],
                                                        resolution_id(rec["case"], r))[0]))
     metrics = pd.concat(frames, ignore_index=True)
     metrics["r"] = metrics["r"].astype(int)
     metrics["nodes"] = metrics["nodes"].astype(int)
     metrics = metrics[list(ID_KEYS) + [c for c in metrics.columns if c not in ID_KEYS]]
-    order = [(rec["run"], r) for r in resolutions for rec in records]
+    order = [(rec["run"], r) for r in resolutions for rec in records
+             if (rec["run"], r) not in missing]
+    if missing:
+        _log(f"{len(missing)} rollout(s) not stored yet, left out: " + ", ".join(
+            f"{run} at r = {r}" for run, r in missing))
     trained = {rec["run"]: {"train_git_sha": rec.get("git_sha"), "train_wall_time_s":
                             rec.get("train_wall_time_s"), "best_epoch": rec.get("best_epoch")}
                for rec in records}
     provenance = pd.DataFrame([{**_flat(rows[k]), **trained[k[0]]} for k in order])
     return write_tables(Path(out) / TRANSFER_DIR, metrics, provenance, tests, suite,
-                        figures=figures)
+                        figures=figures, missing=missing)
+
+
+def tables_from_stored(suite, results_dir, runs_dir, *, seeds=None, only=None, data_dir=None,
+                       figures: bool = True) -> dict:
+    """``meshbench run --tables-only`` of a suite with resolutions: ``RESULTS/SUITE/transfer/``
+    from the finished runs (``record.json``) and the rollouts stored in them; trains, generates
+    and rolls out nothing."""
+    import json
+
+    from benchmarks.suite.runner import RECORD_FILE
+
+    runs_dir = Path(runs_dir)
+    specs = suite.runs(seeds, only)
+    records = [json.loads((runs_dir / r.run_id / RECORD_FILE).read_text()) for r in specs
+               if (runs_dir / r.run_id / RECORD_FILE).exists()]
+    if not records:
+        raise FileNotFoundError(f"{runs_dir}: no finished run of suite {suite.name!r}; "
+                                f"`meshbench run --suite {suite.name}` trains and rolls them out")
+    gone = [r.run_id for r in specs if not (runs_dir / r.run_id / RECORD_FILE).exists()]
+    if gone:
+        _log(f"{len(gone)} run(s) not finished, left out: {', '.join(gone)}")
+    return run_transfer(Path(results_dir) / suite.name, records, runs_dir, suite,
+                        data_dir=data_dir, figures=figures, stored_only=True)
 
 
 def _flat(row: dict) -> dict:
@@ -335,7 +375,8 @@ def _fmt(x) -> str:
     return "diverged" if not np.isfinite(x) else f"{x:.2g}" if x < 10 else f"{x:.0f}"
 
 
-def render_markdown(table: pd.DataFrame, suite, from_step: int = FROM_STEP) -> str:
+def render_markdown(table: pd.DataFrame, suite, from_step: int = FROM_STEP,
+                    missing=()) -> str:
     s = summary(table, from_step)
     lines = [f"# Suite `{suite.name}`: learned models on finer meshes", "",
              suite.description + ".", "",
@@ -343,7 +384,12 @@ def render_markdown(table: pd.DataFrame, suite, from_step: int = FROM_STEP) -> s
              "`rmse_at_step.csv`: mean over the test trajectories at the step, over the same "
              "for every node kept at its initial position), median over the seeds (the worst "
              "seed in brackets). r: the mesh r times finer than the training mesh (r = 1).",
-             "", f"## Largest over the table's steps from {from_step} on", ""]
+             ""]
+    if missing:
+        lines += [f"**Incomplete**: {len(missing)} rollout(s) not stored yet, left out "
+                  f"(`meshbench run --suite {suite.name}` rolls them out): "
+                  + ", ".join(f"{run} at r = {r}" for run, r in missing) + ".", ""]
+    lines += [f"## Largest over the table's steps from {from_step} on", ""]
     for base, d in s.groupby("base", sort=True):
         rs = sorted(d["r"].unique())
         nd = d.drop_duplicates("r").set_index("r")["nodes"]
@@ -381,7 +427,7 @@ def _models(d: pd.DataFrame) -> list:
 
 
 def write_tables(out: Path, metrics: pd.DataFrame, provenance: pd.DataFrame, tests: dict,
-                 suite, figures: bool = True) -> dict:
+                 suite, figures: bool = True, missing=()) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     table = rmse_table(metrics, tests)
     paths = {"runs": out / "runs.csv", "metrics": out / "metrics.csv",
@@ -390,7 +436,7 @@ def write_tables(out: Path, metrics: pd.DataFrame, provenance: pd.DataFrame, tes
     _write_csv(paths["runs"], provenance)
     _write_csv(paths["metrics"], metrics)
     _write_csv(paths["rmse_at_step"], table)
-    md = render_markdown(table, suite)
+    md = render_markdown(table, suite, missing=missing)
     store.atomic_write(paths["markdown"], lambda f: f.write(md), mode="w")
     rs = ", ".join(str(r) for r in sorted(metrics["r"].unique()))
     text = README.format(suite=suite.name, rs=rs)
