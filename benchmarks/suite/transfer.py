@@ -332,8 +332,8 @@ def _flat(row: dict) -> dict:
 def no_motion_table(tests: dict, steps: dict) -> pd.DataFrame:
     """Standing still's mean RMSE over the test trajectories at each table step, per case."""
     rows = []
-    for cid, arrays in tests.items():
-        true = arrays["pos"]
+    for cid in steps:
+        true = tests[cid]["pos"]
         r = M.rmse_per_step(M.no_motion(true), true)
         for s in steps[cid]:
             rows.append({"case": cid, "step": int(s), "no_motion_rmse_mean": r[:, s].mean()})
