@@ -478,7 +478,11 @@ def figure(metrics: pd.DataFrame, tests: dict, base: str, path: Path) -> Path:
         ax.set_xlabel(f"step (saved frame, {float(np.diff(tests[cid]['t'][:2])[0]):g} s)")
         ax.grid(alpha=0.3, which="both", lw=0.5)
     axes[0][0].set_ylabel("position RMSE (m), mean over test trajectories")
-    axes[0][-1].legend(fontsize=7, loc="lower right")
+    seen = {}  # every panel's lines in one legend (a resolution may lack a learner)
+    for ax in axes[0]:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            seen.setdefault(lab, h)
+    axes[0][-1].legend(list(seen.values()), list(seen), fontsize=7, loc="lower right")
     fig.suptitle(f"{base}: trained at r = 1, rolled out on meshes r times finer "
                  "(median over seeds, band: best to worst seed)", fontsize=9)
     return _save(fig, path)
