@@ -16,6 +16,10 @@ def register(sub):
                    help="data directory (default $MESHBENCH_DATA or ./data)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--force", action="store_true", help="regenerate even if files are current")
+    p.add_argument("--split", action="append", default=None, choices=("train", "test"),
+                   help="only this split (repeatable; default both): e.g. --split test, the "
+                        "test trajectories of CASE@rN to roll a model trained on CASE out on; "
+                        "splits already stored are kept")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=run)
 
@@ -37,7 +41,8 @@ def run(args):
                          + ", ".join(sorted(registry.CASES)))
     cases = [registry.get_case(c) for c in ids]
     for case in cases:
-        rep = generate(case, args.data_dir, args.workers, args.force, not args.no_progress)
+        rep = generate(case, args.data_dir, args.workers, args.force, not args.no_progress,
+                       splits=args.split or ("train", "test"))
         if rep.reused:
             print(f"{case.id}: up to date in {rep.case_dir} (hash matches; --force regenerates)")
         else:

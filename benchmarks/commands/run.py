@@ -3,11 +3,13 @@
 Generates missing data, trains every run of the suite (finished runs whose configuration is
 unchanged are reused; interrupted ones resume), rolls the best checkpoints out on the test
 split and writes RESULTS/S/{runs,metrics,rmse_at_step}.csv, rmse_at_step.md and figures/.
-With --compare-with DIR, then compares RESULTS/S/rmse_at_step.csv against DIR/S/ (exit 1 on
+A suite with resolutions (scale) writes its runs' rollouts on finer meshes instead,
+RESULTS/S/transfer/ (docs/SCALE.md). With --compare-with DIR, then compares
+RESULTS/S/rmse_at_step.csv (or transfer/rmse_at_step.csv) against DIR/S/'s (exit 1 on
 a regression) with the per-row tolerances of DIR/S/tolerance.csv (``meshbench tolerance``);
 only the rows this run produced are compared (e.g. seed 0 of a three-seed baseline); with
 --jobs > 1 the runs start longest first by DIR/S/runs.csv's training times.
-Suites: smoke, quick, paper, hanging, integrators, curves, and those plugins register (see
+Suites: smoke, quick, paper, hanging, integrators, curves, scale, and those plugins register (see
 --list)."""
 
 from __future__ import annotations
@@ -47,7 +49,10 @@ def register(sub):
     p.add_argument("--tables-only", action="store_true",
                    help="train nothing: rewrite RESULTS/SUITE/rmse_at_step.csv, .md and the "
                         "RMSE-vs-step figures from its metrics.csv and runs.csv (a results "
-                        "directory brought up to this version's tables)")
+                        "directory brought up to this version's tables); a suite with "
+                        "resolutions: write RESULTS/SUITE/transfer/ from the rollouts stored "
+                        "in the runs directory, rolling nothing out (those not stored yet "
+                        "are left out and named)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--compare-with", default=None, metavar="DIR",
                    help="afterwards compare rmse_at_step.csv with DIR/SUITE/rmse_at_step.csv "
@@ -74,8 +79,9 @@ def run(args):
     from benchmarks.suite.runs import pick_device
 
     pick_device(args.device)  # a bad --device fails here, not in every worker
+    table = Path(suite.name) / ("transfer" if suite.resolutions else "") / "rmse_at_step.csv"
     if args.compare_with is not None:
-        base = Path(args.compare_with) / suite.name / "rmse_at_step.csv"
+        base = Path(args.compare_with) / table
         if Path(args.results).resolve() == Path(args.compare_with).resolve():
             raise ValueError("--compare-with names the --results directory itself; results "
                              "would be compared with themselves")
@@ -84,6 +90,14 @@ def run(args):
 
     refuse_dirty([args.results, args.runs_dir], args.allow_dirty)
 
+    if args.tables_only and suite.resolutions:
+        from benchmarks.suite.transfer import tables_from_stored
+
+        paths = tables_from_stored(suite, args.results, args.runs_dir, seeds=args.seeds,
+                                   only=args.only, data_dir=args.data_dir,
+                                   figures=not args.no_figures)
+        print(paths["markdown"].read_text())
+        return 0
     if args.tables_only:
         paths = rewrite_tables(args.results, suite, data_dir=args.data_dir,
                                figures=not args.no_figures)
@@ -97,7 +111,7 @@ def run(args):
                     executor=args.executor, scheduler=args.scheduler,
                     costs=None if args.compare_with is None
                     else Path(args.compare_with) / suite.name / "runs.csv")
-    print((res["results"] / "rmse_at_step.md").read_text())
+    print(res["paths"]["markdown"].read_text())
     if args.compare_with is None:
         return 0
     if not base.exists():
@@ -109,7 +123,7 @@ def run(args):
     tol_file = base.parent / TOLERANCE_FILE
     use_tol = args.rtol is None and tol_file.exists()
     rtol = suite.compare_rtol if args.rtol is None else args.rtol
-    new = res["results"] / "rmse_at_step.csv"
+    new = res["paths"]["rmse_at_step"]
     result = compare(read_csv(base), read_csv(new), rtol=rtol, atol=0.0,
                      names=(str(base), str(new)),
                      tolerances=read_csv(tol_file) if use_tol else None, subset=True)

@@ -63,33 +63,56 @@ class GenerateInterrupted(KeyboardInterrupt):
         self.case_id, self.kept, self.total, self.partial = case_id, kept, total, partial
 
 
-def _current(case_dir: Path, h: str) -> bool:
-    """``store.is_current``, but an unreadable ``meta.json`` is only "not current": it is
-    written last, so regenerating repairs it."""
+def _current_splits(case_dir: Path, h: str) -> dict:
+    """The ``meta.json`` entries of the splits stored in ``case_dir`` and current for case
+    hash ``h`` (``store.is_current``); none when ``meta.json`` is missing, unreadable (it is
+    written last, so regenerating repairs it) or of another case."""
     try:
-        return store.is_current(case_dir, h)
+        if not store.is_current(case_dir, h):
+            return {}
+        return dict(store.read_meta(case_dir)["splits"])
     except store.StoreError:
-        return False
+        return {}
+
+
+def _current(case_dir: Path, h: str, splits=SPLITS) -> bool:
+    """Every split of ``splits`` is stored and current for case hash ``h``."""
+    return set(splits) <= set(_current_splits(case_dir, h))
+
+
+def check_splits(splits) -> tuple:
+    """``splits`` in the order of ``SPLITS``; ``ValueError`` naming an unknown one."""
+    bad = [s for s in splits if s not in SPLITS]
+    if bad or not splits:
+        raise ValueError(f"--split {bad[0] if bad else ''!r} is not a split; valid: "
+                         + ", ".join(SPLITS))
+    return tuple(s for s in SPLITS if s in splits)
 
 
 def generate(case, root=None, workers: int | None = None, force: bool = False,
-             progress: bool = True, on_wait=None) -> GenerateReport:
+             progress: bool = True, on_wait=None, splits=SPLITS) -> GenerateReport:
     """Write ``ROOT/CASE/{train,test}.npz`` and ``meta.json``; reuse them if up to date.
+
+    ``splits``: only these (e.g. ``("test",)``: a model trained on another case evaluated on
+    this one); splits stored and current are kept as they are (``force`` remakes those asked
+    for) and stay in ``meta.json``, whose ``splits`` lists the splits present. A split's
+    trajectories do not depend on which others are made (its moduli and seed are its own).
 
     Holds ``ROOT/.CASE.lock`` meanwhile: a second ``generate`` of the same case (another
     ``meshbench run`` on the same data) waits for the first (``on_wait(pid)`` is told once)
     and then reuses its files.
     """
+    splits = check_splits(splits)
     root = store.data_dir(root)
     case_dir = root / safe_id(case.id, "case id")
-    if not force and _current(case_dir, case.hash()):
+    if not force and _current(case_dir, case.hash(), splits):
         return GenerateReport(case.id, case_dir, True, 0.0, 0)
     with procs.DirLock(root, f".{case.id}.lock").acquire(wait=True, on_wait=on_wait):
-        return _generate(case, root, workers, force, progress)
+        return _generate(case, root, workers, force, progress, splits)
 
 
 def _generate(case, root: Path, workers: int | None, force: bool,
-              progress: bool) -> GenerateReport:
+              progress: bool, splits=SPLITS) -> GenerateReport:
     """Trajectories run in ``workers`` processes (default: all cores; spawned, with the
     pinned kernel settings of ``procs.REPRO_ENV``, which decide the last bits of the solver's
     results; ``meshbench`` pins them in its own process too, so ``workers=1`` runs in-process
@@ -99,8 +122,11 @@ def _generate(case, root: Path, workers: int | None, force: bool,
     case_dir = root / case.id
     h = case.hash()
     t0 = time.perf_counter()
-    if not force and _current(case_dir, h):
+    current = _current_splits(case_dir, h)
+    make = tuple(s for s in SPLITS if s in splits and (force or s not in current))
+    if not make:
         return GenerateReport(case.id, case_dir, True, time.perf_counter() - t0, 0)
+    kept = {s: v for s, v in current.items() if s not in make}  # stored and current: kept
     workers = max(1, int(workers or os.cpu_count() or 1))
     partial = case_dir / ".partial" / h[:16]
     partial.mkdir(parents=True, exist_ok=True)
@@ -108,8 +134,8 @@ def _generate(case, root: Path, workers: int | None, force: bool,
         procs.remove_partial_writes(d)
     (case_dir / "meta.json").unlink(missing_ok=True)
 
-    moduli = {split: case.sample_youngs(split) for split in SPLITS}
-    jobs = [(s, i, float(y)) for s in SPLITS for i, y in enumerate(moduli[s])]
+    moduli = {split: case.sample_youngs(split) for split in make}
+    jobs = [(s, i, float(y)) for s in make for i, y in enumerate(moduli[s])]
     results: dict = {}
     todo = []
     for s, i, y in jobs:
@@ -153,8 +179,8 @@ def _generate(case, root: Path, workers: int | None, force: bool,
         pool.shutdown(wait=True)
     bar.close()
 
-    meta_splits = {}
-    for s in SPLITS:
+    meta_splits = dict(kept)
+    for s in make:
         n = len(moduli[s])
         t = case.t_save()
         pos = np.stack([results[(s, i)][0] for i in range(n)]) if n else \
@@ -170,7 +196,8 @@ def _generate(case, root: Path, workers: int | None, force: bool,
         "format_version": store.FORMAT_VERSION, "case_id": case.id, "case_hash": h,
         "case": case.to_dict(), "solver": {"method": "backward Euler + Newton-Raphson",
                                            **case.solver_settings.to_dict()},
-        "splits": meta_splits, "versions": store.library_versions(), "git_sha": store.git_sha(),
+        "splits": {s: meta_splits[s] for s in SPLITS if s in meta_splits},
+        "versions": store.library_versions(), "git_sha": store.git_sha(),
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "wall_time_s": round(wall, 3), "workers": workers,
     })

@@ -338,7 +338,9 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
               threads: int = 1, plugin_files=(), progress: bool = True, device: str = "auto",
               figures: bool = True, executor: str = "local", scheduler: str | None = None,
               costs: str | Path | None = None) -> dict:
-    """Run ``suite`` and write ``results_dir/SUITE/``; returns paths and the records.
+    """Run ``suite`` and write ``results_dir/SUITE/``; returns paths and the records. A suite
+    with ``resolutions`` writes its runs' rollouts on finer meshes instead,
+    ``results_dir/SUITE/transfer/`` (``benchmarks.suite.transfer``).
 
     ``costs``: a ``runs.csv`` of an earlier run of the suite (``--compare-with``'s baseline):
     runs start longest recorded training first (``longest_first``); the results' order is
@@ -427,7 +429,18 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
                          + "; ".join(f"{k}: {v}" for k, v in failures.items()))
     ordered = [records[r.run_id] for r in runs]
     with procs.DirLock(out.parent, f".{suite.name}.lock").acquire(wait=True):
-        paths = write_results(out, ordered, runs_dir, suite, figures=figures, data_dir=data_dir)
+        if suite.resolutions:  # the runs on finer meshes: RESULTS/SUITE/transfer/
+            from benchmarks.suite.transfer import run_transfer
+
+            try:
+                paths = run_transfer(out, ordered, runs_dir, suite, data_dir=data_dir,
+                                     jobs=jobs, threads=threads, plugin_files=plugin_files,
+                                     device=device, figures=figures, progress=progress)
+            except KeyboardInterrupt:
+                raise SuiteInterrupted(suite.name, sorted(records), runs_dir) from None
+        else:
+            paths = write_results(out, ordered, runs_dir, suite, figures=figures,
+                                  data_dir=data_dir)
     _log(f"suite {suite.name!r} done in {time.time() - t0:.0f} s; results in {out}")
     return {"results": out, "records": ordered, "paths": paths}
 

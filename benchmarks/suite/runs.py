@@ -480,8 +480,8 @@ def rollout_arrays(run_dir, split: str = "test", data_dir=None, checkpoint: str 
 
     config, model, ck = _load_run(Path(run_dir), checkpoint, device)
     case = get_case(config["case"])
-    if data_file is not None:
-        arrays = store.load_npz(Path(data_file))
+    if data_file is not None:  # ``arrays``: its arrays, when the caller has loaded them
+        arrays = store.load_npz(Path(data_file)) if arrays is None else arrays
         name = str(data_file)
     else:
         name = f"{case.id}/{split}.npz"

@@ -76,9 +76,17 @@ class Suite:
     seeds: int = 1
     notes: str = ""
     compare_rtol: float = 0.0
+    #: resolutions r to roll every run out at, on the test split of ``CASE@rN`` (the same
+    #: case on a mesh r times finer, docs/SCALE.md): RESULTS/NAME/transfer/
+    #: (``benchmarks.suite.transfer``) instead of the suite's tables; empty: none
+    resolutions: tuple = ()
 
     def __post_init__(self):
         safe_id(self.name, "Suite.name")  # names RESULTS/NAME/
+        from groundtruth.cases.base import check_resolution
+
+        for r in self.resolutions:
+            check_resolution(r, f"Suite.resolutions of {self.name!r}")
 
     def runs(self, seeds: int | None = None, only: str | None = None) -> list[RunSpec]:
         k = self.seeds if seeds is None else seeds
@@ -136,15 +144,22 @@ def _solver(case: str) -> tuple:
     return (RunSpec(case, "solver_h", "quick"),)
 
 
+#: The quick suite's runs (the scale suite's too).
+QUICK_RUNS = _quick_models("rod_falling", "quick") + _solver("rod_falling") \
+    + _quick_models("plate_cantilever", "quick") + _solver("plate_cantilever")
 register_suite(Suite(
     "quick", "the paper's two cases, MeshODENet, MGN, MeshODENet-IMEX, Implicit-Energy and "
     "Implicit-Energy with a learned dissipation, "
     "quick preset, and the case's solver at the sampling interval (solver_h, a reference "
     "row); the main job (data and one seed, tox -e bench, --jobs 2) from a fresh clone on a "
     "2-core CPU: docs/RESULTS.md, 'How the committed results were produced'",
-    _quick_models("rod_falling", "quick") + _solver("rod_falling")
-    + _quick_models("plate_cantilever", "quick") + _solver("plate_cantilever"),
-    compare_rtol=0.05))
+    QUICK_RUNS, compare_rtol=0.05))
+register_suite(Suite(
+    "scale", "the quick suite's runs (the same run ids: trained runs are reused), 3 seeds, "
+    "trained on the paper's meshes and rolled out on the test moduli on meshes 1, 2 and 4 "
+    "times finer (CASE@rN, only their test split generated): results/scale/transfer/ "
+    "(docs/SCALE.md, 'Learned models on other meshes')",
+    QUICK_RUNS, seeds=3, compare_rtol=0.05, resolutions=(1, 2, 4)))
 register_suite(Suite(
     "paper", "the paper's two cases, MeshODENet and MGN, the paper's settings (GPU "
     "recommended: a MeshODENet rod run took 6 h of one core, 45-57 s per epoch, on a shared "
