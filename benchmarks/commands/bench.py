@@ -300,9 +300,9 @@ def _scale_arguments(bsub) -> None:
     s.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     s.add_argument("--max-memory-gb", type=float, default=16.0,
                    help="memory cap of each training probe (default 16)")
-    s.add_argument("--memory-wait", type=float, default=120.0,
-                   help="seconds to wait for MemAvailable >= cap + 1 GB before a probe is "
-                   "skipped (default 120)")
+    s.add_argument("--memory-wait", type=float, default=30.0,
+                   help="seconds to wait for MemAvailable >= cap + 1 GB before a training "
+                   "probe runs under a lower cap, MemAvailable - 1 GB (default 30)")
     s.add_argument("--band-limit-gb", type=float, default=3.0,
                    help="skip the banded ground truth where its band storage exceeds this "
                    "(default 3)")

@@ -175,6 +175,8 @@ def timing_child(case_id: str, r: int, methods: list, skip: dict, params: dict, 
     lines go to ``out_q`` as they are measured (``("row", dict)``, ``("log", str)``, then
     ``("done", None)``)."""
     try:
+        if not params["device"].startswith("cuda") and params.get("cap_bytes"):
+            resource.setrlimit(resource.RLIMIT_AS, (params["cap_bytes"], params["cap_bytes"]))
         _timing(case_id, r, methods, skip, params, out_q)
     except BaseException as e:  # noqa: BLE001 - reported to the parent, which records it
         out_q.put(("error", f"{type(e).__name__}: {e}"))
@@ -269,7 +271,7 @@ def _timing(case_id, r, methods, skip, params, out_q):
         for m in want_learners:
             try:
                 model, source = base_model(m, case_id, params["preset"], dev)
-                models[m] = model.on_mesh(mesh)
+                models[m] = model.on_mesh(mesh).to(dev)
                 models[m].eval()
                 log(f"{cid}: {m} built (statistics: {source}); on_mesh to {nodes} nodes")
             except Exception as e:  # noqa: BLE001 - recorded, the others go on
@@ -301,10 +303,16 @@ def _timing(case_id, r, methods, skip, params, out_q):
         if "groundtruth" in methods:
             for name, sysm in variants.items():
                 key = ("groundtruth", name)
-                if key in done:
+                if key in done or key in failed:
                     continue
-                per_step, its, st = gt_run(name, sysm)
-                lu = first_solve(sysm)
+                try:
+                    per_step, its, st = gt_run(name, sysm)
+                    lu = first_solve(sysm)
+                except MemoryError as e:
+                    failed.add(key)
+                    row("groundtruth", name, "step_cpu_s", None, "s",
+                        f"does not fit in the process's memory cap: MemoryError: {e}"[:300])
+                    continue
                 prev = best.get(key)
                 if prev is None or per_step < prev[0]:
                     best[key] = (per_step, its, st.steps, st.halvings)
@@ -329,8 +337,9 @@ def _timing(case_id, r, methods, skip, params, out_q):
                 per = learner_run(m)
             except Exception as e:  # noqa: BLE001 - a learner that fails is recorded
                 failed.add(m)
+                what = "does not fit in the process's memory cap" if _is_oom(e) else "failed"
                 row(m, params["preset"], "rollout_interval_s", None, "s",
-                    f"failed: {type(e).__name__}: {e}"[:300])
+                    f"{what}: {type(e).__name__}: {e}"[:300])
                 log(f"{cid}: {m} rollout failed: {type(e).__name__}: {e}"[:300])
                 continue
             best[m] = min(best.get(m, math.inf), per)
@@ -372,12 +381,18 @@ def _timing(case_id, r, methods, skip, params, out_q):
             row(m, params["preset"], "cost_per_sim_s", best[m] / case.save_dt, "s/s", "")
 
 
+def _is_oom(e: BaseException) -> bool:
+    text = str(e).lower()
+    return isinstance(e, MemoryError) or (isinstance(e, RuntimeError) and (
+        "alloc" in text or "memory" in text))
+
+
 # --- the training probes ---------------------------------------------------------------------
 def train_child(method: str, variant: str, arrays_path: str, params: dict, out_q):
     """Fresh process under the memory cap: one optimizer step of ``method`` (``variant``: a
     MeshODENet gradient mode, else ``"default"``) on the synthetic trajectories of
     ``arrays_path``; puts ``("result", dict)`` or ``("error", text)``."""
-    cap = int(params["max_memory_gb"] * 1024**3)
+    cap = int(params.get("cap_bytes") or params["max_memory_gb"] * 1024**3)
     try:
         if not params["device"].startswith("cuda"):
             resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
@@ -544,13 +559,27 @@ def run_scale(args, log=print) -> dict:
               "band_limit_gb": args.band_limit_gb, "window": args.window,
               "train_traj": args.train_trajectories, "max_memory_gb": args.max_memory_gb}
 
+    def mine(x, case, r, stage, method=None, variant=None):
+        return x["case"] == case and x["r"] == r and x["stage"] == stage and \
+            (method is None or x["method"] == method) and \
+            (variant is None or x["variant"] == variant)
+
     def have(case, r, stage, method=None, variant=None):
+        """Whether a stage has its result (a resumed run redoes one that was skipped, timed
+        out or died: the ground truth's step time, or a probe's step time or no-fit)."""
         for x in rows:
-            if x["case"] == case and x["r"] == r and x["stage"] == stage and \
-                    (method is None or x["method"] == method) and \
-                    (variant is None or x["variant"] == variant):
+            if not mine(x, case, r, stage, method, variant):
+                continue
+            if stage == "timing" and (x["method"], x["variant"], x["quantity"]) == (
+                    "groundtruth", "auto", "step_cpu_s") and np.isfinite(x["value"]):
+                return True
+            if stage == "train" and ((x["quantity"] == "train_step_s" and np.isfinite(
+                    x["value"])) or (x["quantity"] == "fits_memory_cap" and x["value"] == 0)):
                 return True
         return False
+
+    def drop(case, r, stage, method=None, variant=None):
+        rows[:] = [x for x in rows if not mine(x, case, r, stage, method, variant)]
 
     def add(row):
         row["_prov"] = prov
@@ -569,7 +598,7 @@ def run_scale(args, log=print) -> dict:
                 key = x["method"] if x["quantity"] == "rollout_interval_s" else \
                     (x["method"], x["variant"], x["quantity"])
                 history.setdefault(key, []).append((x["nodes"], x["value"]))
-            if x["case"] == case and x["quantity"] == "fits_16gb" and x["value"] == 0:
+            if x["case"] == case and x["quantity"] == "fits_memory_cap" and not x["value"] > 0:
                 stopped[(x["method"], x["variant"])] = f"did not fit at r = {x['r']}"
         for r in args.r[case]:
             cid = refined_id(case, r)
@@ -579,6 +608,14 @@ def run_scale(args, log=print) -> dict:
                            for v in (args.grad_modes if m == "meshodenet" else ("default",))
                            if not have(case, r, "train", m, v)] if args.train else []
             if not have(case, r, "timing"):
+                drop(case, r, "timing")
+                cap, why = _cap(args.max_memory_gb, 0, log)
+                if cap is None:
+                    add(_row(case, r, n, 0, "timing", "groundtruth", "auto", "step_cpu_s", None,
+                             "s", why))
+                    log(f"[scale] {cid}: timing {why}")
+                    save()
+                    continue
                 skip = {}
                 for m in args.methods:
                     if m == "groundtruth":
@@ -589,7 +626,8 @@ def run_scale(args, log=print) -> dict:
                     elif pred is not None and pred * args.steps > args.max_seconds:
                         skip[m] = (f"skipped: predicted {pred:.3g} s per interval x "
                                    f"{args.steps} > --max-seconds {args.max_seconds:g}")
-                prm = dict(params, train_arrays=str(arrays_path) if need_probes else "")
+                prm = dict(params, train_arrays=str(arrays_path) if need_probes else "",
+                           cap_bytes=cap)
                 log(f"[scale] {cid} ({n} nodes): timing {', '.join(args.methods)}"
                     + (f"; skipping {', '.join(skip)}" if skip else ""))
                 q = ctx.Queue()
@@ -624,7 +662,7 @@ def run_scale(args, log=print) -> dict:
                             (g["method"], g["variant"], g["quantity"])
                         history.setdefault(key, []).append((g["nodes"], g["value"]))
                         if g["method"] in LEARNERS + ("solver_h",) and not np.isfinite(
-                                g["value"]) and g["note"].startswith("failed"):
+                                g["value"]) and g["note"].startswith(("failed", "does not")):
                             stopped[g["method"]] = f"failed at r = {r}"
                 save()
             for m, v in need_probes:
@@ -639,14 +677,21 @@ def run_scale(args, log=print) -> dict:
                 if why is None and not arrays_path.exists():
                     why = None
                     _prepare(ctx, case, r, arrays_path, params, args.stage_timeout)
+                cap = None
                 if why is None:
-                    why = _wait_memory(args.max_memory_gb, args.memory_wait, log)
+                    cap, why = _cap(args.max_memory_gb, args.memory_wait, log)
                 if why is not None:
                     add(_row(case, r, *nodes_e, "train", m, v, "train_step_s", None, "s", why))
                     log(f"[scale] {cid} train {m} [{v}]: {why}")
                     save()
                     continue
-                res = _probe(ctx, m, v, str(arrays_path), params, args.stage_timeout)
+                drop(case, r, "train", m, v)
+                cap_gb = cap / 1024**3
+                capnote = f"cap {cap_gb:.3g} GB" + (
+                    "" if cap_gb >= args.max_memory_gb else
+                    f" (less than --max-memory-gb {args.max_memory_gb:g}: MemAvailable - 1 GB)")
+                res = _probe(ctx, m, v, str(arrays_path), dict(params, cap_bytes=cap),
+                             args.stage_timeout)
                 if "result" in res:
                     p = res["result"]
                     cfg = ", ".join(f"{k} {val}" for k, val in p["config"].items())
@@ -660,8 +705,8 @@ def run_scale(args, log=print) -> dict:
                         add(_row(case, r, *nodes_e, "train", m, v, "cuda_peak_gb",
                                  p["cuda_peak_gb"], "GB", p["device"]))
                     fits = p["peak_rss_gb"] <= args.max_memory_gb
-                    add(_row(case, r, *nodes_e, "train", m, v, "fits_16gb", float(fits), "1",
-                             f"cap {args.max_memory_gb:g} GB"))
+                    add(_row(case, r, *nodes_e, "train", m, v, "fits_memory_cap", float(fits),
+                             "1", f"--max-memory-gb {args.max_memory_gb:g}; {capnote}"))
                     history.setdefault(key, []).append((n, p["step_s"]))
                     log(f"[scale] {cid} train {m} [{v}]: {p['step_s']:.4g} s/step, peak RSS "
                         f"{p['peak_rss_gb']:.2f} GB")
@@ -673,9 +718,11 @@ def run_scale(args, log=print) -> dict:
                     add(_row(case, r, *nodes_e, "train", m, v, "train_step_s", None, "s",
                              f"{kind}: {text}"[:300]))
                     if nofit:
-                        add(_row(case, r, *nodes_e, "train", m, v, "fits_16gb", 0.0, "1",
-                                 f"cap {args.max_memory_gb:g} GB: {kind}"))
-                        stopped[(m, v)] = f"did not fit at r = {r}"
+                        full = cap_gb >= args.max_memory_gb
+                        add(_row(case, r, *nodes_e, "train", m, v, "fits_memory_cap",
+                                 0.0 if full else None, "1", f"{capnote}: {kind}" + (
+                                     "" if full else "; inconclusive for the full cap")))
+                        stopped[(m, v)] = f"did not fit at r = {r} ({capnote})"
                     else:
                         stopped[(m, v)] = f"{kind} at r = {r}"
                     log(f"[scale] {cid} train {m} [{v}]: {kind}: {text}"[:400])
@@ -705,17 +752,26 @@ def _prepare(ctx, case, r, path, params, timeout):
     proc.join()
 
 
-def _wait_memory(cap_gb, wait_s, log) -> str | None:
-    """None once MemAvailable >= cap + 1 GB (waiting up to ``wait_s``), else why not."""
+#: a process is not started with less memory than this under its cap, GB
+MIN_CAP_GB = 2.0
+
+
+def _cap(cap_gb, wait_s, log) -> tuple:
+    """``(cap in bytes, None)`` for a measuring process: ``cap_gb`` once MemAvailable >=
+    ``cap_gb`` + 1 GB (waiting up to ``wait_s``), else MemAvailable - 1 GB if that is at
+    least ``MIN_CAP_GB`` (a result that fits it fits the full cap; a failure under it is
+    recorded as inconclusive); ``(None, why)`` when not even that is free."""
     deadline = time.monotonic() + wait_s
     said = False
     while True:
         avail = mem_available_gb()
         if avail >= cap_gb + 1:
-            return None
+            return int(cap_gb * 1024**3), None
         if time.monotonic() > deadline:
-            return (f"skipped: MemAvailable {avail:.1f} GB < cap {cap_gb:g} + 1 GB after "
-                    f"waiting {wait_s:g} s")
+            if avail - 1 >= MIN_CAP_GB:
+                return int((avail - 1) * 1024**3), None
+            return None, (f"skipped: MemAvailable {avail:.1f} GB < {MIN_CAP_GB:g} + 1 GB after "
+                          f"waiting {wait_s:g} s")
         if not said:
             log(f"[scale] waiting for memory: MemAvailable {avail:.1f} GB < {cap_gb + 1:g} GB")
             said = True
