@@ -45,6 +45,10 @@ def _interrupt_message(args, argv, e: BaseException) -> str:
     if args.command == "generate":
         detail = f"{e}; " if str(e) else ""
         return f"{detail}finished trajectories are kept; resume with `{again}`"
+    if args.command == "bench" and getattr(args, "what", None) == "scale":
+        resume = again if "--resume" in words else again + " --resume"
+        return (f"the rows measured so far are in {Path(args.out) / 'scale.csv'}; continue "
+                f"with `{resume}`")
     if args.command == "run":
         detail = f"{e}; " if str(e) else "finished runs are kept; "
         return f"{detail}resume with `{again}`"

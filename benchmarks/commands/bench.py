@@ -25,7 +25,8 @@ MODES = ("direct", "checkpoint", "adjoint")
 def register(sub):
     p = sub.add_parser("bench", help="measure the cost of the models (default: `bench engine`)",
                        description="`meshbench bench [OPTIONS]` (= `meshbench bench engine "
-                       "[OPTIONS]`) or `meshbench bench train`.")
+                       "[OPTIONS]`) or `meshbench bench train` or `meshbench bench scale`.",
+                       allow_abbrev=False)  # `bench scale --r` is no abbreviation of --rounds
     _engine_arguments(p)
     p.set_defaults(func=run_engine)
     bsub = p.add_subparsers(dest="what", required=False, metavar="WHAT")
@@ -37,6 +38,7 @@ def register(sub):
     _engine_arguments(e)
     e.set_defaults(func=run_engine)
     _train_arguments(bsub)
+    _scale_arguments(bsub)
 
 
 def _engine_arguments(e) -> None:
@@ -265,3 +267,121 @@ def _measure(mode: str, p: dict) -> dict:
             "forward_evals_per_s": (fwd or model.nfe) / wall,
             "threads": torch.get_num_threads(), "device": str(dev), "data": source,
             "pid": os.getpid(), "python": sys.version.split()[0]}
+
+
+# --- bench scale ---------------------------------------------------------------------------
+def _scale_arguments(bsub) -> None:
+    from benchmarks.cost import scalebench as sb
+
+    s = bsub.add_parser("scale", help="cost and memory of the ground truth and the learners "
+                        "against the number of nodes (CASE@rN)", description=sb.__doc__,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("--cases", default=",".join(sb.DEFAULT_CASES),
+                   help="comma-separated, of " + ", ".join(sb.CASES))
+    s.add_argument("--r", default=None,
+                   help="resolutions, comma-separated, for every case (default per case: "
+                   + "; ".join(f"{c} {','.join(map(str, r))}" for c, r in sb.DEFAULT_R.items())
+                   + ")")
+    s.add_argument("--methods", default=",".join(sb.METHODS),
+                   help="comma-separated, of " + ", ".join(sb.METHODS))
+    s.add_argument("--steps", type=int, default=2,
+                   help="saved intervals (the case's save_dt) simulated by the ground truth "
+                   "(each of several of its time steps) and rolled out by each model per "
+                   "measurement (default 2)")
+    s.add_argument("--rounds", type=int, default=2, help="interleaved rounds (default 2)")
+    s.add_argument("--window", type=int, default=10,
+                   help="intervals of the synthetic training trajectories (default 10)")
+    s.add_argument("--train-trajectories", type=int, default=8,
+                   help="synthetic training trajectories (default 8)")
+    s.add_argument("--preset", default="quick", help="model preset (default quick)")
+    s.add_argument("--device", default="cpu",
+                   help="cpu (default), auto, cuda or cuda:K for the learners (docs/GPU.md); "
+                   "the ground truth runs on the CPU")
+    s.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    s.add_argument("--max-memory-gb", type=float, default=16.0,
+                   help="memory cap of each training probe (default 16)")
+    s.add_argument("--memory-wait", type=float, default=30.0,
+                   help="seconds to wait for MemAvailable >= cap + 1 GB before a training "
+                   "probe runs under a lower cap, MemAvailable - 1 GB (default 30)")
+    s.add_argument("--band-limit-gb", type=float, default=3.0,
+                   help="skip the banded ground truth where its band storage exceeds this "
+                   "(default 3)")
+    s.add_argument("--max-seconds", type=float, default=300.0,
+                   help="skip a measurement predicted to take longer (default 300)")
+    s.add_argument("--stage-timeout", type=float, default=3600.0,
+                   help="kill a measuring process after this many seconds (default 3600)")
+    s.add_argument("--grad-modes", default=",".join(("direct", "adjoint", "checkpoint")),
+                   help="MeshODENet's gradient modes probed in training (default all three)")
+    s.add_argument("--no-train", action="store_true", help="skip the training probes")
+    s.add_argument("--out", default="results/scale", help="output directory")
+    s.add_argument("--resume", action="store_true",
+                   help="keep the rows of OUT/scale.csv and measure only what is missing")
+    add_allow_dirty(s)
+    s.set_defaults(func=run_scale)
+
+
+def run_scale(args):
+    from benchmarks.cost import scalebench as sb
+    from benchmarks.suite.registry import get_case
+    from benchmarks.suite.runs import check_device_name
+    from meshodenet.training.presets import check_preset
+
+    def items(text, what):
+        out = [x.strip() for x in str(text).split(",") if x.strip()]
+        if not out:
+            raise ValueError(f"--{what}: empty value {text!r}")
+        return out
+
+    cases = items(args.cases, "cases")
+    bad = [c for c in cases if c not in sb.CASES]
+    if bad:
+        raise ValueError(f"--cases: unknown case {bad[0]!r}; valid: {', '.join(sb.CASES)}")
+    methods = items(args.methods, "methods")
+    bad = [m for m in methods if m not in sb.METHODS]
+    if bad:
+        raise ValueError(f"--methods: unknown method {bad[0]!r}; valid: {', '.join(sb.METHODS)}")
+    if args.r is None:
+        rs = {c: list(sb.DEFAULT_R[c]) for c in cases}
+    else:
+        vals = []
+        for x in items(args.r, "r"):
+            if not x.isdigit() or int(x) < 1 or x != str(int(x)):
+                raise ValueError(f"--r: each resolution must be a positive integer, got {x!r}")
+            vals.append(int(x))
+        rs = {c: sorted(set(vals)) for c in cases}
+    for c in cases:
+        for r in rs[c]:
+            get_case(sb.refined_id(c, r))
+    for name in ("steps", "rounds", "window", "train_trajectories", "threads"):
+        v = getattr(args, name)
+        if v < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be an integer >= 1, got {v}")
+    for name in ("max_memory_gb", "band_limit_gb", "max_seconds", "stage_timeout"):
+        v = getattr(args, name)
+        if not (v > 0 and v < float("inf")):
+            raise ValueError(f"--{name.replace('_', '-')} must be a positive number, got {v}")
+    if not args.memory_wait >= 0:
+        raise ValueError(f"--memory-wait must be >= 0, got {args.memory_wait}")
+    args.grad_modes = items(args.grad_modes, "grad-modes")
+    bad = [m for m in args.grad_modes if m not in sb.GRAD_MODES]
+    if bad:
+        raise ValueError(f"--grad-modes: unknown gradient mode {bad[0]!r}; valid: "
+                         f"{', '.join(sb.GRAD_MODES)}")
+    check_preset(args.preset)
+    check_device_name(str(args.device))
+    from benchmarks.suite.runs import pick_device
+
+    pick_device(args.device)
+    refuse_dirty(args.out, args.allow_dirty)
+    args.cases, args.methods, args.r = cases, methods, rs
+    args.train = not args.no_train
+    print(f"meshbench bench scale: {', '.join(f'{c} r = {rs[c]}' for c in cases)}; "
+          f"{', '.join(methods)}; {args.steps} intervals, {args.rounds} rounds, preset "
+          f"{args.preset}, {args.threads} thread(s), device {args.device}; memory cap "
+          f"{args.max_memory_gb:g} GB; out {args.out}", flush=True)
+    res = sb.run_scale(args, log=lambda m: print(m, flush=True))
+    for line in sb.tables(res["rows"], res["fit_rows"]):
+        print(line)
+    print(f"wrote {res['csv']}, {res['fits']}" + (f", {res['figure']}" if res["figure"] else ""))
+    print("(timings on a shared machine vary with its load; compare rows of one run)")
+    return 0
