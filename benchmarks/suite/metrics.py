@@ -160,3 +160,16 @@ def rmse_at_step_table(metrics: pd.DataFrame, steps: dict | None = None,
     table["increase_vs_" + reference_model + "_pct"] = 100.0 * (table["rmse_mean"] / table["_ref"] - 1.0)
     table = table.drop(columns=["_ref"])
     return table.sort_values(keys + ["step"]).reset_index(drop=True)
+
+
+def per_run_metrics(pred, true, t, ids: dict) -> pd.DataFrame:
+    """Tidy RMSE rows of one run: every (trajectory, step), then each trajectory's
+    full-rollout RMSE (``metric`` = ``full_rollout_rmse``, ``step`` = the horizon)."""
+    steps = tidy_metrics(pred, true, t, ids)
+    steps.insert(len(ids), "metric", "rmse_at_step")
+    full = full_rollout_rmse(pred, true)
+    T = np.asarray(pred).shape[1]
+    rows = pd.DataFrame({**{k: v for k, v in ids.items()}, "metric": "full_rollout_rmse",
+                         "trajectory": np.arange(len(full)), "step": T - 1,
+                         "time": float(np.asarray(t)[-1]), "rmse": full})
+    return pd.concat([steps, rows], ignore_index=True)

@@ -37,13 +37,13 @@ import pandas as pd
 from benchmarks.suite import horizon as H
 from benchmarks.suite import metrics as M
 from benchmarks.suite import procs
+from benchmarks.suite.metrics import per_run_metrics  # noqa: F401 - used here and by tests
 from benchmarks.suite.registry import get_case
-from benchmarks.suite.runs import PRED_FILE
+from benchmarks.suite.runs import METRICS_FILE, PRED_FILE, RECORD_FILE
+from benchmarks.suite.runs import cpu_model as _cpu_model
 from benchmarks.suite.suites import RunSpec, Suite
 from groundtruth import store
 
-RECORD_FILE = "record.json"
-METRICS_FILE = "test_metrics.csv"
 ID_COLUMNS = ["run", "case", "model", "preset", "integrator", "grad_mode", "seed"]
 
 CSV_HEADERS = {
@@ -302,34 +302,11 @@ def _add_horizon(spec: RunSpec, run_dir: Path, data_dir, device: str, arrays=Non
         log(f"not computed ({type(e).__name__}: {e}); the next `meshbench run` retries")
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
 def _n_params(run_dir: Path) -> int:
     from meshodenet.training.train import load_checkpoint
 
     ck = load_checkpoint(run_dir / "best.pt")
     return int(sum(v.numel() for v in ck["model"].values()))
-
-
-def per_run_metrics(pred, true, t, ids: dict) -> pd.DataFrame:
-    """Tidy RMSE rows of one run: every (trajectory, step), then each trajectory's
-    full-rollout RMSE (``metric`` = ``full_rollout_rmse``, ``step`` = the horizon)."""
-    steps = M.tidy_metrics(pred, true, t, ids)
-    steps.insert(len(ids), "metric", "rmse_at_step")
-    full = M.full_rollout_rmse(pred, true)
-    T = np.asarray(pred).shape[1]
-    rows = pd.DataFrame({**{k: v for k, v in ids.items()}, "metric": "full_rollout_rmse",
-                         "trajectory": np.arange(len(full)), "step": T - 1,
-                         "time": float(np.asarray(t)[-1]), "rmse": full})
-    return pd.concat([steps, rows], ignore_index=True)
 
 
 # --- the suite ------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ import dataclasses
 import datetime
 import json
 import os
+import platform
 import time
 import typing
 from pathlib import Path
@@ -24,6 +25,9 @@ from groundtruth import store
 CONFIG_FILE = "config.json"
 #: a suite run's rollout of its best checkpoint on the test split (``store.save_npz`` arrays)
 PRED_FILE = "test_rollout.npz"
+#: a suite run's record (written last: the run is finished) and its tidy test metrics
+RECORD_FILE = "record.json"
+METRICS_FILE = "test_metrics.csv"
 
 
 def suite_models() -> dict:
@@ -532,3 +536,14 @@ def load_test_rollout(run_dir) -> np.ndarray:
     (``PRED_FILE``), loaded without unpickling."""
     with np.load(Path(run_dir) / PRED_FILE, allow_pickle=False) as z:
         return z["pos"]
+
+
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo), else the platform's processor."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"

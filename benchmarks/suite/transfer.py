@@ -93,6 +93,10 @@ worst seed.
 """
 
 
+class TransferError(ValueError):
+    """Rollouts on finer meshes failed (the finished ones are kept in the runs)."""
+
+
 def _log(msg: str) -> None:
     print(f"[meshbench run] transfer: {msg}", file=sys.stderr, flush=True)
 
@@ -139,8 +143,7 @@ def transfer_one(rec: dict, run_dir: str, r: int, data_dir, threads: int, plugin
     import torch
 
     from benchmarks.suite import plugins
-    from benchmarks.suite.runner import _cpu_model, per_run_metrics
-    from benchmarks.suite.runs import rollout_arrays
+    from benchmarks.suite.runs import cpu_model, rollout_arrays
 
     plugins.load_all(plugin_files)
     torch.set_num_threads(threads)
@@ -156,7 +159,7 @@ def transfer_one(rec: dict, run_dir: str, r: int, data_dir, threads: int, plugin
     pred, m = rollout_arrays(run_dir, "test", data_dir, "best", device, data_file=path,
                              arrays=arrays)
     nodes = int(arrays["pos"].shape[2])
-    df = per_run_metrics(pred["pos"], arrays["pos"], arrays["t"], _ids(rec, case.id, r, nodes))
+    df = M.per_run_metrics(pred["pos"], arrays["pos"], arrays["t"], _ids(rec, case.id, r, nodes))
     csv, js = stored_paths(run_dir, case.id)
     csv.parent.mkdir(exist_ok=True)
     text = df.to_csv(index=False, float_format="%.9g", lineterminator="\n")
@@ -168,7 +171,7 @@ def transfer_one(rec: dict, run_dir: str, r: int, data_dir, threads: int, plugin
            "peak_rss_mb": round(procs.peak_rss_mb(), 1), "checkpoint_epoch": m["epoch"],
            "checkpoint_sha256": ck_sha, "reused": False, "git_sha": store.git_sha(),
            "host": socket.gethostname(), "machine": platform.machine(),
-           "cpu_model": _cpu_model(), "cpu_count": os.cpu_count(),
+           "cpu_model": cpu_model(), "cpu_count": os.cpu_count(),
            "threads": torch.get_num_threads(),
            "cpu_capability": torch.backends.cpu.get_cpu_capability(),
            "kernel_env": " ".join(f"{k}={os.environ[k]}" for k in procs.REPRO_ENV
@@ -183,7 +186,7 @@ def transfer_one(rec: dict, run_dir: str, r: int, data_dir, threads: int, plugin
 def _at_r1(rec: dict, runs_dir: Path, nodes: int) -> tuple[pd.DataFrame, dict]:
     """A run's rows at r = 1: its own test rollout's (``test_metrics.csv``), and its
     provenance row (the run's record: where and with what it was rolled out)."""
-    from benchmarks.suite.runner import METRICS_FILE
+    from benchmarks.suite.runs import METRICS_FILE
 
     df = pd.read_csv(runs_dir / rec["run"] / METRICS_FILE)
     df = df[df["metric"].isin(ROLLOUT_METRICS)]
@@ -271,9 +274,7 @@ def run_transfer(out: Path, records: list, runs_dir: Path, suite, *, data_dir=No
 
     procs.run_tasks(tasks, min(jobs, max(1, len(tasks))), on_result)
     if failures:
-        from benchmarks.suite.runner import SuiteError
-
-        raise SuiteError(f"{len(failures)} transfer rollout(s) of suite {suite.name!r} failed "
+        raise TransferError(f"{len(failures)} transfer rollout(s) of suite {suite.name!r} failed "
                          "(finished rollouts are kept in each run's transfer/; rerun the same "
                          "command to resume): " + "; ".join(
                              f"{k[0]} at r = {k[1]}: {v}" for k, v in failures.items()))
@@ -306,7 +307,7 @@ def tables_from_stored(suite, results_dir, runs_dir, *, seeds=None, only=None, d
     and rolls out nothing."""
     import json
 
-    from benchmarks.suite.runner import RECORD_FILE
+    from benchmarks.suite.runs import RECORD_FILE
 
     runs_dir = Path(runs_dir)
     specs = suite.runs(seeds, only)
@@ -419,11 +420,11 @@ def render_markdown(table: pd.DataFrame, suite, from_step: int = FROM_STEP,
 def _models(d: pd.DataFrame) -> list:
     """``(model, rows)`` in the suite's usual order: learners first, the solver row last."""
     from benchmarks.suite.figures import COLORS
-    from benchmarks.suite.runner import _trainable
+    from benchmarks.suite.runs import trainable
 
     rank = {m: i for i, m in enumerate(COLORS)}
     groups = list(d.groupby("model", sort=True))
-    return sorted(groups, key=lambda g: (not _trainable(g[0]), rank.get(g[0], len(rank))))
+    return sorted(groups, key=lambda g: (not trainable(g[0]), rank.get(g[0], len(rank))))
 
 
 def write_tables(out: Path, metrics: pd.DataFrame, provenance: pd.DataFrame, tests: dict,
