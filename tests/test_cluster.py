@@ -213,3 +213,25 @@ def test_local_cluster_listens_on_loopback_only():
     finally:
         client.close()
         cluster.close()
+
+
+def test_generate_on_a_local_cluster_matches_local_generation(root, tmp_path):
+    """`meshbench generate --executor dask`: one task per trajectory; the same files."""
+    import numpy as np
+
+    r = subprocess.run([sys.executable, "-m", "benchmarks.cli", "--plugin", str(root / "plugin.py"),
+                        "generate", TINY, "--data-dir", str(tmp_path / "data"), "--executor",
+                        "dask", "--workers", "2", "--no-progress"], capture_output=True, text=True,
+                       env=ENV, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    for split in ("train", "test"):
+        with np.load(root / "data" / TINY / f"{split}.npz") as a, \
+                np.load(tmp_path / "data" / TINY / f"{split}.npz") as b:
+            assert np.array_equal(a["pos"], b["pos"]) and np.array_equal(a["vel"], b["vel"])
+
+
+def test_generate_scheduler_needs_dask(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "benchmarks.cli", "generate", "rod_falling",
+                        "--scheduler", "tcp://127.0.0.1:1", "--data-dir", str(tmp_path)],
+                       capture_output=True, text=True, env=ENV, timeout=120)
+    assert r.returncode == 2 and "--scheduler needs --executor dask" in r.stderr

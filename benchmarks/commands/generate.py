@@ -20,6 +20,13 @@ def register(sub):
                    help="only this split (repeatable; default both): e.g. --split test, the "
                         "test trajectories of CASE@rN to roll a model trained on CASE out on; "
                         "splits already stored are kept")
+    p.add_argument("--executor", default="local", choices=("local", "dask"),
+                   help="local (processes on this machine, default) or dask: one task per "
+                   "trajectory on a dask.distributed cluster (docs/CLUSTER.md; workers share "
+                   "the data directory)")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="the dask scheduler (default with --executor dask: a LocalCluster of "
+                   "--workers processes on this machine)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=run)
 
@@ -33,6 +40,8 @@ def run(args):
             print(f"{cid:24s} {type(case).__name__}: {case.n_train} train + {case.n_test} test, "
                   f"{case.n_frames} frames{finer}")
         return 0
+    if args.scheduler is not None and args.executor != "dask":
+        raise ValueError("--scheduler needs --executor dask")
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     ids = sorted(registry.CASES) if args.all else args.cases
@@ -42,7 +51,8 @@ def run(args):
     cases = [registry.get_case(c) for c in ids]
     for case in cases:
         rep = generate(case, args.data_dir, args.workers, args.force, not args.no_progress,
-                       splits=args.split or ("train", "test"))
+                       splits=args.split or ("train", "test"), executor=args.executor,
+                       scheduler=args.scheduler)
         if rep.reused:
             print(f"{case.id}: up to date in {rep.case_dir} (hash matches; --force regenerates)")
         else:

@@ -45,6 +45,46 @@ def _simulate_one(case, youngs: float, out: str) -> str:
     return out
 
 
+def _simulate_task(case_id: str, plugin_files: tuple, youngs: float, out: str) -> str:
+    """A cluster task (``benchmarks.suite.cluster.remote_task`` runs it in a fresh process on
+    a worker): the case by id, with the client's plugins, one trajectory into ``out``."""
+    from benchmarks.suite.registry import get_case
+
+    plugins.load_all(plugin_files)
+    return _simulate_one(get_case(case_id), youngs, out)
+
+
+def _generate_dask(case, todo, partial: Path, results: dict, bar, workers: int,
+                   scheduler: str | None) -> None:
+    """One dask task per trajectory of ``todo`` (the cluster of ``scheduler``, or a loopback
+    ``LocalCluster`` of ``workers`` processes); each writes its partial file on the shared
+    filesystem (docs/CLUSTER.md), read back here. A trajectory that failed everywhere is an
+    error naming it; the finished ones stay in ``partial`` for the next invocation."""
+    from benchmarks.suite.cluster import run_tasks_dask
+
+    files = tuple(str(Path(f).resolve()) for f in plugins.loaded_files())
+    tasks = {f"generate-{case.id}-{s}-{i}": (s, i, y) for s, i, y in todo}
+    failed = []
+
+    def on_result(key, kind, value):
+        s, i, y = tasks[key]
+        if kind == "ok":
+            results[(s, i)] = _load_partial(partial / f"{s}_{i:04d}.npz", y)
+        if kind != "ok" or results[(s, i)] is None:
+            results.pop((s, i), None)
+            failed.append(f"{s} {i} (Y = {y:g} Pa): {kind}: {value}")
+        bar.update(1)
+
+    run_tasks_dask({k: (_simulate_task, (case.id, files, y,
+                                         str((partial / f"{s}_{i:04d}.npz").resolve())))
+                    for k, (s, i, y) in tasks.items()},
+                   on_result, scheduler, min(workers, len(tasks)))
+    if failed:
+        raise RuntimeError(f"{case.id}: {len(failed)} of {len(tasks)} trajectories failed on "
+                           "the cluster (the others are kept for the next run): "
+                           + "; ".join(failed[:3]))
+
+
 def _load_partial(path: Path, youngs: float):
     try:
         with np.load(path, allow_pickle=False) as z:
@@ -90,7 +130,8 @@ def check_splits(splits) -> tuple:
 
 
 def generate(case, root=None, workers: int | None = None, force: bool = False,
-             progress: bool = True, on_wait=None, splits=SPLITS) -> GenerateReport:
+             progress: bool = True, on_wait=None, splits=SPLITS, executor: str = "local",
+             scheduler: str | None = None) -> GenerateReport:
     """Write ``ROOT/CASE/{train,test}.npz`` and ``meta.json``; reuse them if up to date.
 
     ``splits``: only these (e.g. ``("test",)``: a model trained on another case evaluated on
@@ -108,11 +149,12 @@ def generate(case, root=None, workers: int | None = None, force: bool = False,
     if not force and _current(case_dir, case.hash(), splits):
         return GenerateReport(case.id, case_dir, True, 0.0, 0)
     with procs.DirLock(root, f".{case.id}.lock").acquire(wait=True, on_wait=on_wait):
-        return _generate(case, root, workers, force, progress, splits)
+        return _generate(case, root, workers, force, progress, splits, executor, scheduler)
 
 
 def _generate(case, root: Path, workers: int | None, force: bool,
-              progress: bool, splits=SPLITS) -> GenerateReport:
+              progress: bool, splits=SPLITS, executor: str = "local",
+              scheduler: str | None = None) -> GenerateReport:
     """Trajectories run in ``workers`` processes (default: all cores; spawned, with the
     pinned kernel settings of ``procs.REPRO_ENV``, which decide the last bits of the solver's
     results; ``meshbench`` pins them in its own process too, so ``workers=1`` runs in-process
@@ -146,7 +188,9 @@ def _generate(case, root: Path, workers: int | None, force: bool,
             todo.append((s, i, y))
     bar = tqdm(total=len(jobs), initial=len(results), desc=f"generate {case.id}", unit="traj",
                disable=not progress, file=sys.stderr)
-    if todo and workers == 1:  # in-process: easier to debug and to interrupt
+    if todo and executor == "dask":
+        _generate_dask(case, todo, partial, results, bar, workers, scheduler)
+    elif todo and workers == 1:  # in-process: easier to debug and to interrupt
         for s, i, y in todo:
             _simulate_one(case, y, str(partial / f"{s}_{i:04d}.npz"))
             results[(s, i)] = _load_partial(partial / f"{s}_{i:04d}.npz", y)

@@ -343,8 +343,11 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
     t0 = time.time()
     _log(f"suite {suite.name!r}: {len(runs)} run(s): {', '.join(r.run_id for r in runs)}")
     for case_id in dict.fromkeys(r.case for r in runs):
+        # on a cluster the data's trajectories are dask tasks too (the workers share data_dir)
+        cluster = {"executor": "dask", "scheduler": scheduler, "workers": jobs} \
+            if executor == "dask" else {}
         rep = generate(get_case(case_id), data_dir, progress=progress, on_wait=lambda pid, c=case_id: _log(
-            f"data {c}: process {pid or '?'} is generating it; waiting for it"))
+            f"data {c}: process {pid or '?'} is generating it; waiting for it"), **cluster)
         _log(f"data {case_id}: " + ("up to date" if rep.reused else
                                     f"generated in {rep.wall_time_s:.0f} s"))
 
