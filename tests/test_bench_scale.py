@@ -11,6 +11,7 @@ import pytest
 
 from benchmarks.cli import main
 from benchmarks.cost import scalebench as sb
+from benchmarks.cost.scalereport import crossover
 
 TINY = ["bench", "scale", "--cases", "rod_falling", "--r", "1,2", "--steps", "1", "--rounds",
         "1", "--methods", "groundtruth,solver_h,meshodenet", "--grad-modes", "direct",
@@ -72,16 +73,16 @@ def test_crossover_measured_and_predicted():
     gt = {k: 1e-4 * k ** 1.5 for k in n}
     # measured: ratio gt/learner = k / 100 crosses 10 at k = 1000 exactly
     learner = {k: 1e-2 * k ** 0.5 for k in n}
-    rec = sb.crossover("c", "m", gt, learner)
+    rec = crossover("c", "m", gt, learner)
     assert rec["range"] == "measured" and rec["value"] == pytest.approx(1000)
     # predicted: ratio = k / 1e5 reaches 10 at k = 1e6, beyond the sizes measured
     learner = {k: 10.0 * k ** 0.5 for k in n}
-    rec = sb.crossover("c", "m", gt, learner)
+    rec = crossover("c", "m", gt, learner)
     assert rec["range"] == "predicted" and rec["value"] == pytest.approx(1e6, rel=1e-9)
     assert "not reached up to 10000 nodes" in rec["note"]
     # a learner that grows as fast as the ground truth never gets there
     learner = {k: 1.0 * k ** 1.5 for k in n}
-    rec = sb.crossover("c", "m", gt, learner)
+    rec = crossover("c", "m", gt, learner)
     assert rec["range"] == "not reached" and math.isnan(rec["value"])
     assert "never" in rec["note"]
 

@@ -380,7 +380,9 @@ def run_scale(args):
           f"{args.preset}, {args.threads} thread(s), device {args.device}; memory cap "
           f"{args.max_memory_gb:g} GB; out {args.out}", flush=True)
     res = sb.run_scale(args, log=lambda m: print(m, flush=True))
-    for line in sb.tables(res["rows"], res["fit_rows"]):
+    from benchmarks.cost.scalereport import tables
+
+    for line in tables(res["rows"], res["fit_rows"]):
         print(line)
     print(f"wrote {res['csv']}, {res['fits']}" + (f", {res['figure']}" if res["figure"] else ""))
     print("(timings on a shared machine vary with its load; compare rows of one run)")

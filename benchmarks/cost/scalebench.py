@@ -35,430 +35,43 @@ A measurement predicted (from the last two sizes) to take longer than ``--max-se
 skipped and recorded so. The rows go to ``--out``/scale.csv (tidy: one row per case, r,
 method, variant and quantity; written atomically after each resolution; ``--resume`` keeps
 what is there and measures only what is missing), the fitted log-log exponents and the
-crossovers to ``fits.csv``, the figure to ``scale.png``.
+crossovers to ``fits.csv``, the figure to ``scale.png``. The measuring processes are in
+``benchmarks.cost.scaleprocs``, the outputs in ``benchmarks.cost.scalereport``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import datetime
 import math
 import os
 import platform
 import queue as queue_mod
-import resource
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-CASES = ("rod_falling", "plate_cantilever", "plate_hanging")
-DEFAULT_CASES = ("rod_falling", "plate_cantilever")
-#: resolutions per case (nodes: rod 20 r + 1; plate_cantilever 182 ... ~1e5 at r = 27)
-DEFAULT_R = {"rod_falling": (1, 4, 16, 64, 500),
-             "plate_cantilever": (1, 2, 4, 8, 16, 27),
-             "plate_hanging": (1, 2, 4, 8, 16)}
-LEARNERS = ("meshodenet", "mgn", "meshodenet_imex", "implicit_energy",
-            "implicit_energy_dissipation")
-METHODS = ("groundtruth", "solver_h") + LEARNERS
-GRAD_MODES = ("direct", "adjoint", "checkpoint")
-#: a timing longer than this (s) is not repeated in later rounds
-REPEAT_BELOW_S = 20.0
-#: the cost ratio ground truth / learner per simulated second looked for
-CROSSOVER_RATIO = 10.0
-COLUMNS = ["case", "r", "nodes", "edges", "stage", "method", "variant", "quantity", "value",
-           "unit", "note"]
-PROVENANCE = ["git_sha", "timestamp", "machine", "cpu_model", "cpu_count", "threads", "device",
-              "linear_backend", "preset", "steps", "window", "version_python", "version_numpy",
-              "version_scipy", "version_torch"]
-
-
-# --- small helpers ---------------------------------------------------------------------------
-def refined_id(case: str, r: int) -> str:
-    return case if r == 1 else f"{case}@r{r}"
-
-
-def mem_available_gb() -> float:
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) / 1024**2
-    except OSError:
-        pass
-    return float("inf")
-
-
-def fit_power(nodes, values) -> tuple[float, float]:
-    """``(exponent, prefactor)`` of the least-squares line of log(value) on log(nodes)."""
-    x, y = np.log(np.asarray(nodes, float)), np.log(np.asarray(values, float))
-    p, a = np.polyfit(x, y, 1)
-    return float(p), float(np.exp(a))
-
-
-def _timer(device):
-    """``(now, sync)``: CPU seconds of this process on the CPU, wall seconds (after the GPU's
-    queue has run) on CUDA."""
-    from benchmarks.cost import device as dv
-
-    if device.type == "cuda":
-        return time.perf_counter, lambda: dv.sync(device)
-    return time.process_time, lambda: None
-
-
-def _row(case, r, nodes, edges, stage, method, variant, quantity, value, unit, note=""):
-    v = float(value) if value is not None else float("nan")
-    return {"case": case, "r": int(r), "nodes": int(nodes), "edges": int(edges), "stage": stage,
-            "method": method, "variant": variant, "quantity": quantity, "value": v, "unit": unit,
-            "note": note}
-
-
-def mesh_arrays(case, system, t, pos, vel, youngs, split="single") -> dict:
-    """The store layout of ``store.trajectory_arrays`` with the loads of an already built
-    ``system`` (``case.loads()`` would build it again)."""
-    from groundtruth import store
-
-    edges, cells, node_type = case.mesh()
-    return {"t": np.asarray(t, float), "pos": np.asarray(pos, float),
-            "vel": np.asarray(vel, float), "youngs": np.asarray(youngs, float),
-            "edges": np.asarray(edges, np.int64), "cells": np.asarray(cells, np.int64),
-            "node_type": np.asarray(node_type, np.int64), "rest_pos": case.rest_positions(),
-            "mass": system.mass.copy(), "force": system.force.copy(),
-            "damping": system.damping.copy(), "case": np.array(case.id),
-            "split": np.array(split), "case_hash": np.array(case.hash()),
-            "format_version": np.array(store.FORMAT_VERSION)}
-
-
-def synthetic_training(arrays: dict, n_traj: int, frames: int, save_dt: float) -> dict:
-    """``arrays`` with ``n_traj`` synthetic trajectories of ``frames`` frames (rest positions
-    plus a small seeded random walk of the free nodes; the cost of a training step does not
-    depend on the values)."""
-    rest = np.asarray(arrays["rest_pos"], float)
-    rng = np.random.default_rng(0)
-    shape = (n_traj, frames) + rest.shape
-    vel = 1e-3 * rng.standard_normal(shape).cumsum(1) / np.sqrt(frames)
-    vel *= (np.asarray(arrays["node_type"]) == 0)[None, None, :, None]
-    vel[:, 0] = 0.0
-    pos = rest + np.cumsum(vel, 1) * save_dt
-    youngs = np.full(n_traj, float(np.asarray(arrays["youngs"]).ravel()[0]))
-    return dict(arrays, t=np.arange(frames) * save_dt, pos=pos, vel=vel, youngs=youngs,
-                split=np.array("train"))
-
-
-def base_model(method: str, case_id: str, preset: str, device, log=None):
-    """An untrained ``method`` (seeded weights) on the base case's mesh, its statistics from the
-    base case's training data (the generated data when present, else synthetic), and where the
-    data came from."""
-    import torch
-
-    from benchmarks.cost.enginebench import bench_arrays
-    from benchmarks.suite.registry import get_case
-    from benchmarks.suite.runs import get_model_spec
-    from meshodenet.mesh.data import Mesh, Trajectories
-
-    base = get_case(case_id.split("@")[0])
-    n = min(base.n_train, 8)
-    arrays, source = bench_arrays(base, n, base.n_frames, None)
-    mesh = Mesh.from_arrays(arrays)
-    spec = get_model_spec(method)
-    _, cfg = spec.presets(preset, mesh.kind)
-    torch.manual_seed(0)
-    model = spec.build(mesh, cfg, Trajectories.from_arrays(arrays))
-    return model.to(device), source
-
-
-# --- the timing process ----------------------------------------------------------------------
-def timing_child(case_id: str, r: int, methods: list, skip: dict, params: dict, out_q):
-    """Fresh process: every timing of ``case_id`` at resolution ``r`` interleaved; rows and log
-    lines go to ``out_q`` as they are measured (``("row", dict)``, ``("log", str)``, then
-    ``("done", None)``)."""
-    try:
-        if not params["device"].startswith("cuda") and params.get("cap_bytes"):
-            resource.setrlimit(resource.RLIMIT_AS, (params["cap_bytes"], params["cap_bytes"]))
-        _timing(case_id, r, methods, skip, params, out_q)
-    except BaseException as e:  # noqa: BLE001 - reported to the parent, which records it
-        out_q.put(("error", f"{type(e).__name__}: {e}"))
-    out_q.put(("done", None))
-
-
-def _timing(case_id, r, methods, skip, params, out_q):
-    import torch
-
-    from benchmarks.suite.registry import get_case
-    from benchmarks.suite.runs import pick_device
-    from groundtruth import assembly, implicit
-    from groundtruth.store import save_npz
-
-    torch.set_num_threads(params["threads"])
-    log = lambda m: out_q.put(("log", m))  # noqa: E731
-    dev = pick_device(params["device"])
-    cid = refined_id(case_id, r)
-    t0 = time.process_time()
-    case = get_case(cid)
-    edges = case.mesh()[0]
-    nodes = len(case.node_type())
-    y = case.reference_youngs
-    system = case.system(y)
-    build_s = time.process_time() - t0
-    row = lambda *a, **k: out_q.put(("row", _row(case_id, r, nodes, len(edges), "timing",  # noqa: E731
-                                                  *a, **k)))
-    a = system.assembler
-    backend = "band LU" if a.banded else f"sparse ({assembly.available_backend()})"
-    row("groundtruth", "auto", "system_build_cpu_s", build_s, "s",
-        f"case, mesh and system built once (not in the per-step times); {backend}")
-    log(f"{cid}: {nodes} nodes, {len(edges)} edges, ndof {a.ndof}, bandwidth {a.bandwidth}; "
-        f"system built in {build_s:.1f} CPU s; auto = {backend}")
-    q0, v0 = case.initial_state()
-    q0, v0 = q0.ravel(), v0.ravel()
-    steps = params["steps"]
-    t_save = np.arange(steps + 1) * case.save_dt
-    settings = case.solver_settings
-
-    variants = {"auto": system}
-    band_gb = (5 * a.bandwidth + 2) * a.ndof * 8 / 1e9
-    if "groundtruth" in methods:
-        if band_gb > params["band_limit_gb"]:
-            row("groundtruth", "banded", "step_cpu_s", None, "s",
-                f"skipped: the band storage would take {band_gb:.1f} GB > --band-limit-gb "
-                f"{params['band_limit_gb']:g}")
-        else:
-            variants["banded"] = dataclasses.replace(system, linear_solver="banded")
-    best: dict = {}
-    traj = {}
-
-    def gt_run(name, sysm):
-        t1 = time.process_time()
-        pos, vel, st = implicit.simulate(sysm, q0, v0, t_save, settings)
-        dt = time.process_time() - t1
-        traj[name] = (pos, vel)
-        return dt / st.steps, st.newton_iterations / st.steps, st
-
-    def first_solve(sysm):
-        """CPU s of the linear solve (factorization included) of the first Newton matrix."""
-        m, c = sysm.mass_dofs, sysm.damping_dofs
-        h = settings.dt
-        free = ~sysm.fixed_dofs
-        q = q0 + h * v0 * free
-        g, K = sysm.gradient_hessian(q, m / h**2 + c / h)
-        f = m * ((q - q0) / h - v0) / h + g + c * (q - q0) / h - sysm.force_dofs
-        f[~free] = 0.0
-        t1 = time.process_time()
-        K.solve(f)
-        return time.process_time() - t1
-
-    # learners on the refined mesh, built before any timing
-    models = {}
-    want_learners = [m for m in LEARNERS if m in methods and m not in skip]
-    if want_learners or "solver_h" in methods:
-        # the real initial frames of the refined case (one interval of the auto ground truth)
-        pos1, vel1, _ = implicit.simulate(system, q0, v0, t_save[:2], settings)
-        arrays = mesh_arrays(case, system, t_save[:2], pos1.reshape(1, 2, nodes, 3),
-                             vel1.reshape(1, 2, nodes, 3), [y])
-    if params.get("train_arrays"):  # the probes' mesh, without building the system again
-        save_npz(Path(params["train_arrays"]), synthetic_training(
-            arrays if want_learners or "solver_h" in methods else
-            mesh_arrays(case, system, t_save[:2], np.repeat(q0.reshape(1, 1, nodes, 3), 2, 1),
-                        np.zeros((1, 2, nodes, 3)), [y]),
-            params["train_traj"], params["window"] + 1, case.save_dt))
-    if want_learners:
-        from meshodenet.mesh.data import Mesh, Trajectories
-
-        mesh = Mesh.from_arrays(arrays)
-        data = Trajectories.from_arrays(arrays, device=dev)
-        tt = torch.as_tensor(t_save, dtype=torch.float32, device=dev)
-        for m in want_learners:
-            try:
-                model, source = base_model(m, case_id, params["preset"], dev)
-                models[m] = model.on_mesh(mesh).to(dev)
-                models[m].eval()
-                log(f"{cid}: {m} built (statistics: {source}); on_mesh to {nodes} nodes")
-            except Exception as e:  # noqa: BLE001 - recorded, the others go on
-                row(m, params["preset"], "rollout_interval_s", None, "s",
-                    f"failed to build: {type(e).__name__}: {e}"[:300])
-    now, sync = _timer(dev)
-
-    def learner_run(m):
-        model = models[m]
-        sync()
-        t1 = now()
-        with torch.no_grad():
-            model.rollout(data.pos[:1, 0], data.vel[:1, 0], data.youngs[:1], tt)
-        sync()
-        return (now() - t1) / steps
-
-    def solver_h_run():
-        from benchmarks.suite.solver_row import SolverRow, SolverRowConfig
-        from meshodenet.mesh.data import Mesh
-
-        sh = SolverRow(Mesh.from_arrays(arrays), SolverRowConfig()).settings(t_save)
-        t1 = time.process_time()
-        _, _, st = implicit.simulate(system, q0, v0, t_save, sh)
-        return (time.process_time() - t1) / steps, st.newton_iterations / steps
-
-    done = set()
-    failed = set()
-    for rnd in range(params["rounds"]):
-        if "groundtruth" in methods:
-            for name, sysm in variants.items():
-                key = ("groundtruth", name)
-                if key in done or key in failed:
-                    continue
-                try:
-                    per_step, its, st = gt_run(name, sysm)
-                    lu = first_solve(sysm)
-                except MemoryError as e:
-                    failed.add(key)
-                    row("groundtruth", name, "step_cpu_s", None, "s",
-                        f"does not fit in the process's memory cap: MemoryError: {e}"[:300])
-                    continue
-                prev = best.get(key)
-                if prev is None or per_step < prev[0]:
-                    best[key] = (per_step, its, st.steps, st.halvings)
-                best[key + ("solve",)] = min(best.get(key + ("solve",), math.inf), lu)
-                log(f"{cid}: ground truth {name}: {per_step:.4g} CPU s/step, {its:.2f} Newton "
-                    f"iterations/step ({st.steps} steps); first Newton matrix solved in "
-                    f"{lu:.4g} s (round {rnd + 1})")
-                if per_step * st.steps > REPEAT_BELOW_S:
-                    done.add(key)
-        if "solver_h" in methods and "solver_h" not in skip and "solver_h" not in done:
-            per, its = solver_h_run()
-            if per < best.get("solver_h", (math.inf,))[0]:
-                best["solver_h"] = (per, its)
-            log(f"{cid}: solver_h: {per:.4g} CPU s/interval, {its:.2f} Newton iterations/"
-                f"interval (round {rnd + 1})")
-            if per * steps > REPEAT_BELOW_S:
-                done.add("solver_h")
-        for m in models:
-            if m in done or m in failed:
-                continue
-            try:
-                per = learner_run(m)
-            except Exception as e:  # noqa: BLE001 - a learner that fails is recorded
-                failed.add(m)
-                what = "does not fit in the process's memory cap" if _is_oom(e) else "failed"
-                row(m, params["preset"], "rollout_interval_s", None, "s",
-                    f"{what}: {type(e).__name__}: {e}"[:300])
-                log(f"{cid}: {m} rollout failed: {type(e).__name__}: {e}"[:300])
-                continue
-            best[m] = min(best.get(m, math.inf), per)
-            log(f"{cid}: {m}: {per:.4g} s/interval (round {rnd + 1})")
-            if per * steps > REPEAT_BELOW_S:
-                done.add(m)
-
-    dt = settings.dt
-    for name in variants:
-        key = ("groundtruth", name)
-        if key not in best:
-            continue
-        per_step, its, n_steps, halvings = best[key]
-        note = backend if name == "auto" else "band LU (LAPACK solve_banded)"
-        row("groundtruth", name, "step_cpu_s", per_step, "s", note)
-        row("groundtruth", name, "cost_per_sim_s", per_step / dt, "s/s",
-            f"CPU s per simulated second (dt = {dt:g} s)")
-        row("groundtruth", name, "newton_iterations_per_step", its, "1",
-            f"{n_steps} steps, {halvings} halvings")
-        row("groundtruth", name, "first_solve_cpu_s", best[key + ("solve",)], "s",
-            "linear solve of the first Newton matrix, factorization included")
-    if "banded" in traj:
-        pb, pa = traj["banded"][0], traj["auto"][0]
-        diff = float(np.max(np.abs(pb - pa)) / max(np.max(np.abs(pb - pb[0])), 1e-300))
-        row("groundtruth", "auto", "max_diff_vs_banded", diff, "1",
-            "max |auto - banded| of the positions over max displacement")
-    if "solver_h" in best:
-        per, its = best["solver_h"]
-        row("solver_h", "backward_euler", "rollout_interval_s", per, "s",
-            f"CPU s; one backward-Euler step per save_dt = {case.save_dt:g} s; {backend}")
-        row("solver_h", "backward_euler", "cost_per_sim_s", per / case.save_dt, "s/s", "")
-        row("solver_h", "backward_euler", "newton_iterations_per_step", its, "1", "")
-    clock = "wall s on " + str(dev) if dev.type == "cuda" else "CPU s"
-    for m in models:
-        if m in best:
-            row(m, params["preset"], "rollout_interval_s", best[m], "s",
-                f"{clock}; untrained, {params['preset']} preset; {steps} intervals of "
-                f"{case.save_dt:g} s")
-            row(m, params["preset"], "cost_per_sim_s", best[m] / case.save_dt, "s/s", "")
-
-
-def _is_oom(e: BaseException) -> bool:
-    text = str(e).lower()
-    return isinstance(e, MemoryError) or (isinstance(e, RuntimeError) and (
-        "alloc" in text or "memory" in text))
-
-
-# --- the training probes ---------------------------------------------------------------------
-def train_child(method: str, variant: str, arrays_path: str, params: dict, out_q):
-    """Fresh process under the memory cap: one optimizer step of ``method`` (``variant``: a
-    MeshODENet gradient mode, else ``"default"``) on the synthetic trajectories of
-    ``arrays_path``; puts ``("result", dict)`` or ``("error", text)``."""
-    cap = int(params.get("cap_bytes") or params["max_memory_gb"] * 1024**3)
-    try:
-        if not params["device"].startswith("cuda"):
-            resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
-        out_q.put(("result", _train(method, variant, arrays_path, params, cap)))
-    except MemoryError as e:
-        out_q.put(("nofit", f"MemoryError: {e}"[:300]))
-    except RuntimeError as e:
-        text = str(e)
-        if "alloc" in text.lower() or "memory" in text.lower():
-            out_q.put(("nofit", f"{type(e).__name__}: {text}"[:300]))
-        else:
-            out_q.put(("error", f"{type(e).__name__}: {text}"[:300]))
-    except BaseException as e:  # noqa: BLE001 - reported to the parent
-        out_q.put(("error", f"{type(e).__name__}: {e}"[:300]))
-
-
-def _train(method, variant, arrays_path, params, cap) -> dict:
-    import torch
-
-    from benchmarks.cost import device as dv
-    from benchmarks.cost.enginebench import peak_gb, rss_gb
-    from benchmarks.suite.runs import get_model_spec, pick_device
-    from groundtruth.store import load_npz
-    from meshodenet.mesh.data import Mesh, Trajectories
-    from meshodenet.training.train import make_optimizer, train_epoch
-
-    torch.set_num_threads(params["threads"])
-    dev = pick_device(params["device"])
-    if dev.type == "cuda":
-        total = torch.cuda.get_device_properties(dev).total_memory
-        torch.cuda.set_per_process_memory_fraction(min(1.0, cap / total), dev)
-    arrays = load_npz(Path(arrays_path))
-    mesh = Mesh.from_arrays(arrays)
-    spec = get_model_spec(method)
-    tc, mc = spec.presets(params["preset"], mesh.kind)
-    changes = {}
-    fields = {f.name for f in dataclasses.fields(mc)}
-    if method in ("meshodenet", "meshodenet_imex") and "shooting" in fields:
-        changes["shooting"] = 0  # the whole window
-    if variant in GRAD_MODES and "grad_mode" in fields:
-        changes["grad_mode"] = variant
-    mc = dataclasses.replace(mc, **changes)
-    data = Trajectories.from_arrays(arrays, device=dev)
-    torch.manual_seed(0)
-    model = spec.build(mesh, mc, data).to(dev)
-    cfg = dataclasses.replace(tc, epochs=1, lr_milestones=(), max_batches=0)
-    opt, _ = make_optimizer(model, cfg)
-    model.start_epoch(max(getattr(mc, "shooting_epochs", 0) or 0, 0))
-    base = rss_gb()
-    dv.reset_peak(dev)
-    now, sync = _timer(dev)
-    times = []
-    for k in range(2):
-        sync()
-        t0 = now()
-        train_epoch(model, opt, data, cfg, torch.Generator().manual_seed(k), max_batches=1)
-        sync()
-        times.append(now() - t0)
-        if times[0] > REPEAT_BELOW_S:
-            break
-    return {"step_s": min(times), "steps_timed": len(times), "peak_rss_gb": peak_gb(),
-            "setup_rss_gb": base, "cuda_peak_gb": dv.cuda_peak_gb(dev),
-            "batch_size": cfg.batch_size, "n_samples": model.n_training_samples(data),
-            "config": {k: getattr(mc, k) for k in ("hidden", "layers", "shooting", "grad_mode",
-                                                   "integrator") if k in fields},
-            "device": str(dev)}
+from benchmarks.cost.scalecore import (  # noqa: F401 - the command's names
+    CASES,
+    COLUMNS,
+    CROSSOVER_RATIO,
+    DEFAULT_CASES,
+    DEFAULT_R,
+    GRAD_MODES,
+    LEARNERS,
+    METHODS,
+    PROVENANCE,
+    REPEAT_BELOW_S,
+    _row,
+    _timer,
+    base_model,
+    fit_power,
+    mem_available_gb,
+    mesh_arrays,
+    refined_id,
+    synthetic_training,
+)
 
 
 # --- the driver ------------------------------------------------------------------------------
@@ -539,6 +152,8 @@ def run_scale(args, log=print) -> dict:
 
     import pandas as pd
 
+    from benchmarks.cost.scaleprocs import timing_child
+    from benchmarks.cost.scalereport import fit_table, plot, write_csv, write_table
     from benchmarks.suite.runs import pick_device
 
     out = Path(args.out)
@@ -744,6 +359,8 @@ def run_scale(args, log=print) -> dict:
 
 def _prepare(ctx, case, r, path, params, timeout):
     """The probes' arrays of ``case`` at ``r`` when a resumed run has none (a short process)."""
+    from benchmarks.cost.scaleprocs import timing_child
+
     q = ctx.Queue()
     proc = ctx.Process(target=timing_child, args=(case, r, [], {}, dict(
         params, train_arrays=str(path)), q))
@@ -779,6 +396,8 @@ def _cap(cap_gb, wait_s, log) -> tuple:
 
 
 def _probe(ctx, method, variant, path, params, timeout) -> dict:
+    from benchmarks.cost.scaleprocs import train_child
+
     q = ctx.Queue()
     proc = ctx.Process(target=train_child, args=(method, variant, path, params, q))
     proc.start()
@@ -809,218 +428,3 @@ def _probe(ctx, method, variant, path, params, timeout) -> dict:
                 "for memory?)"}
     proc.join()
     return got
-
-
-# --- outputs ---------------------------------------------------------------------------------
-def write_csv(path: Path, rows: list) -> None:
-    import pandas as pd
-
-    from groundtruth import store
-
-    recs = []
-    for x in rows:
-        rec = {k: x[k] for k in COLUMNS}
-        rec.update({k: x.get("_prov", {}).get(k, "") for k in PROVENANCE})
-        recs.append(rec)
-    df = pd.DataFrame(recs, columns=COLUMNS + PROVENANCE)
-    text = df.to_csv(index=False, float_format="%.6g", lineterminator="\n")
-    store.atomic_write(Path(path), lambda f: f.write(text), mode="w")
-
-
-def write_table(path: Path, recs: list) -> None:
-    import pandas as pd
-
-    from groundtruth import store
-
-    text = pd.DataFrame(recs).to_csv(index=False, float_format="%.6g", lineterminator="\n")
-    store.atomic_write(Path(path), lambda f: f.write(text), mode="w")
-
-
-def _series(rows, case, method, variant, quantity):
-    pts = sorted((x["nodes"], x["value"]) for x in rows
-                 if x["case"] == case and x["method"] == method and
-                 (variant is None or x["variant"] == variant) and x["quantity"] == quantity
-                 and np.isfinite(x["value"]) and x["value"] > 0)
-    return [p[0] for p in pts], [p[1] for p in pts]
-
-
-def fit_table(rows) -> list:
-    """Exponents (all sizes, and sizes >= 1000 nodes) of every cost and memory series, and per
-    learner the crossover with the ground truth (``CROSSOVER_RATIO`` times cheaper per
-    simulated second)."""
-    out = []
-    keys = sorted({(x["case"], x["method"], x["variant"], x["quantity"]) for x in rows
-                   if x["quantity"] in ("step_cpu_s", "rollout_interval_s", "train_step_s",
-                                        "peak_rss_gb", "first_solve_cpu_s",
-                                        "newton_iterations_per_step", "system_build_cpu_s")})
-    for case, method, variant, quantity in keys:
-        n, v = _series(rows, case, method, variant, quantity)
-        for label, lo in (("all", 0), (">=1e3 nodes", 1000)):
-            sel = [(a, b) for a, b in zip(n, v) if a >= lo]
-            if len(sel) < 2:
-                continue
-            p, c = fit_power(*zip(*sel))
-            out.append({"case": case, "kind": "exponent", "method": method, "variant": variant,
-                        "quantity": quantity, "range": label, "points": len(sel),
-                        "nodes_min": sel[0][0], "nodes_max": sel[-1][0], "value": p,
-                        "prefactor": c, "note": ""})
-    for case in sorted({x["case"] for x in rows}):
-        gn, gv = _series(rows, case, "groundtruth", "auto", "cost_per_sim_s")
-        for m in LEARNERS:
-            ln, lv = _series(rows, case, m, None, "cost_per_sim_s")
-            if not gn or not ln:
-                continue
-            out.append(crossover(case, m, dict(zip(gn, gv)), dict(zip(ln, lv))))
-    return out
-
-
-def crossover(case, method, gt: dict, learner: dict) -> dict:
-    """Nodes at which ``learner`` (CPU s per simulated second by nodes) is ``CROSSOVER_RATIO``
-    times cheaper than the ground truth ``gt``: measured (log-log interpolation between the
-    two sizes around it), else predicted from the exponents fitted over the largest three
-    common sizes."""
-    common = sorted(set(gt) & set(learner))
-    rec = {"case": case, "kind": "crossover_10x", "method": method, "variant": "",
-           "quantity": "nodes", "range": "", "points": len(common),
-           "nodes_min": common[0] if common else np.nan,
-           "nodes_max": common[-1] if common else np.nan, "value": np.nan, "prefactor": np.nan}
-    if not common:
-        return dict(rec, note="no common sizes")
-    ratio = {n: gt[n] / learner[n] for n in common}
-    ratios = "; ".join(f"{n}: {ratio[n]:.3g}" for n in common)
-    if ratio[common[0]] >= CROSSOVER_RATIO:
-        return dict(rec, value=common[0], range="measured",
-                    note=f"already >= {CROSSOVER_RATIO:g}x at the smallest size; ratio gt/learner "
-                    f"by nodes {ratios}")
-    for a, b in zip(common[:-1], common[1:]):
-        if ratio[a] < CROSSOVER_RATIO <= ratio[b]:
-            x = math.log(a) + (math.log(CROSSOVER_RATIO) - math.log(ratio[a])) * \
-                (math.log(b) - math.log(a)) / (math.log(ratio[b]) - math.log(ratio[a]))
-            return dict(rec, value=math.exp(x), range="measured",
-                        note=f"between {a} and {b} nodes (log-log interpolated); ratio "
-                        f"gt/learner by nodes {ratios}")
-    last = common[-3:]
-    if len(last) < 2:
-        return dict(rec, range="not reached", note=f"one size only; ratio {ratios}")
-    pg, cg = fit_power(last, [gt[n] for n in last])
-    pl, cl = fit_power(last, [learner[n] for n in last])
-    note = (f"not reached up to {common[-1]} nodes (ratio there {ratio[common[-1]]:.3g}); "
-            f"exponents over {last[0]}-{last[-1]} nodes: ground truth {pg:.2f}, learner "
-            f"{pl:.2f}")
-    if pg <= pl:
-        return dict(rec, range="not reached", note=note + "; the learner grows as fast or "
-                    "faster: never, by these exponents")
-    n_star = (CROSSOVER_RATIO * cl / cg) ** (1.0 / (pg - pl))
-    return dict(rec, value=n_star, range="predicted", note=note + f"; predicted at "
-                f"{n_star:.3g} nodes")
-
-
-LABELS = {"groundtruth": "ground truth", "solver_h": "solver at h", "meshodenet": "MeshODENet",
-          "mgn": "MGN", "meshodenet_imex": "MeshODENet-IMEX", "implicit_energy": "Implicit-Energy",
-          "implicit_energy_dissipation": "Implicit-Energy, learned dissipation"}
-
-
-def plot(path: Path, rows, cap_gb: float) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from groundtruth import store
-
-    cases = [c for c in CASES if any(x["case"] == c for x in rows)]
-    fig, axes = plt.subplots(len(cases), 2, figsize=(13, 4.6 * len(cases)), squeeze=False)
-    colors = dict(zip(METHODS, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
-    styles = {"auto": "-", "banded": ":", "direct": "-", "adjoint": "--", "checkpoint": ":"}
-    for ax, case in zip(axes, cases):
-        for method in METHODS:
-            variants = sorted({x["variant"] for x in rows if x["case"] == case and
-                               x["method"] == method and x["quantity"] == "cost_per_sim_s"})
-            for v in variants:
-                n, val = _series(rows, case, method, v, "cost_per_sim_s")
-                if n:
-                    lab = LABELS[method] + (f" ({v})" if method == "groundtruth" else "")
-                    ax[0].loglog(n, val, styles.get(v, "-"), marker="o" if method in (
-                        "groundtruth", "solver_h") else "s", color=colors[method], label=lab)
-            for v in (GRAD_MODES if method == "meshodenet" else ("default",)):
-                n, val = _series(rows, case, method, v, "peak_rss_gb")
-                if n:
-                    ax[1].loglog(n, val, styles.get(v, "-"), marker="s", color=colors[method],
-                                 label=LABELS[method] + (f" ({v})" if method == "meshodenet"
-                                                         else ""))
-        ax[0].set(xlabel="nodes", ylabel="CPU s per simulated second",
-                  title=f"{case}: cost per simulated second")
-        ax[1].axhline(cap_gb, color="k", ls=":", label=f"{cap_gb:g} GB cap")
-        ax[1].set(xlabel="nodes", ylabel="peak resident memory of one training step, GB",
-                  title=f"{case}: training memory")
-        for a in ax:
-            a.grid(True, which="both", alpha=0.3)
-            a.legend(fontsize=7)
-    fig.tight_layout()
-
-    def write(f):
-        fig.savefig(f, format="png", dpi=110)
-    store.atomic_write(Path(path), write)
-    plt.close(fig)
-
-
-# --- printed tables --------------------------------------------------------------------------
-def tables(rows, fits) -> list[str]:
-    lines = []
-    for case in sorted({x["case"] for x in rows}):
-        lines.append(f"== {case}")
-        rs = sorted({x["r"] for x in rows if x["case"] == case})
-
-        def val(r, method, variant, q, case=case):
-            for x in rows:
-                if (x["case"], x["r"], x["method"], x["quantity"]) == (case, r, method, q) and \
-                        (variant is None or x["variant"] == variant):
-                    return x["value"]
-            return float("nan")
-        lines.append(f"{'r':>4} {'nodes':>7} {'gt auto s/step':>14} {'banded s/step':>13} "
-                     f"{'ratio':>6} {'Newton/step':>11} {'band LU solve':>13} "
-                     f"{'auto/LU solve':>13}")
-        for r in rs:
-            n = next(x["nodes"] for x in rows if x["case"] == case and x["r"] == r)
-            a, b = val(r, "groundtruth", "auto", "step_cpu_s"), \
-                val(r, "groundtruth", "banded", "step_cpu_s")
-            lu = val(r, "groundtruth", "banded", "first_solve_cpu_s")
-            lines.append(f"{r:>4} {n:>7} {a:>14.4g} {b:>13.4g} {b / a:>6.2f} "
-                         f"{val(r, 'groundtruth', 'auto', 'newton_iterations_per_step'):>11.2f} "
-                         f"{lu:>13.4g} {a / lu:>13.3g}")
-        lines.append("CPU s per simulated second (rollout per interval / save_dt; ground truth "
-                     "per step / dt):")
-        head = ["groundtruth", "solver_h"] + list(LEARNERS)
-        lines.append(f"{'r':>4} {'nodes':>7} " + " ".join(f"{LABELS[m][:14]:>14}" for m in head))
-        for r in rs:
-            n = next(x["nodes"] for x in rows if x["case"] == case and x["r"] == r)
-            vals = [val(r, m, "auto" if m == "groundtruth" else None, "cost_per_sim_s")
-                    for m in head]
-            lines.append(f"{r:>4} {n:>7} " + " ".join(f"{v:>14.4g}" for v in vals))
-        lines.append("one training step: s / peak RSS GB")
-        cols = [(m, v) for m in LEARNERS for v in (GRAD_MODES if m == "meshodenet"
-                                                  else ("default",))]
-        lines.append(f"{'r':>4} {'nodes':>7} " + " ".join(
-            f"{(m[:10] + ('/' + v[:4] if v != 'default' else '')):>16}" for m, v in cols))
-        for r in rs:
-            n = next(x["nodes"] for x in rows if x["case"] == case and x["r"] == r)
-            cells = []
-            for m, v in cols:
-                s, g = val(r, m, v, "train_step_s"), val(r, m, v, "peak_rss_gb")
-                cells.append(f"{s:>8.3g}/{g:<7.3g}" if np.isfinite(s) else f"{'-':>16}")
-            lines.append(f"{r:>4} {n:>7} " + " ".join(cells))
-    lines.append("== fitted exponents (>= 1e3 nodes) and crossovers")
-    for f in fits:
-        if f["kind"] == "exponent" and f["range"] == ">=1e3 nodes" and f["quantity"] in (
-                "step_cpu_s", "rollout_interval_s", "train_step_s", "peak_rss_gb"):
-            lines.append(f"  {f['case']} {f['method']} [{f['variant']}] {f['quantity']}: "
-                         f"N^{f['value']:.2f} over {f['points']} sizes {f['nodes_min']}-"
-                         f"{f['nodes_max']}")
-        elif f["kind"] == "crossover_10x":
-            lines.append(f"  {f['case']} {f['method']}: 10x cheaper than ground truth: "
-                         f"{f['range']} {f['value']:.4g} nodes; {f['note']}")
-    return lines
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit("use `meshbench bench scale`")
