@@ -402,29 +402,10 @@ def _probe(ctx, method, variant, path, params, timeout) -> dict:
     proc = ctx.Process(target=train_child, args=(method, variant, path, params, q))
     proc.start()
     got = {}
-
-    def on_item(kind, value):
-        got[kind] = value
-    deadline = time.monotonic() + timeout
-    while not got and proc.is_alive() and time.monotonic() < deadline:
-        try:
-            kind, value = q.get(timeout=1.0)
-            on_item(kind, value)
-        except queue_mod.Empty:
-            pass
-    if not got:
-        try:
-            kind, value = q.get(timeout=2.0)
-            on_item(kind, value)
-        except queue_mod.Empty:
-            pass
-    if not got:
-        if proc.is_alive():
-            proc.kill()
-            proc.join()
-            return {"timeout": f"killed after --stage-timeout {timeout:g} s"}
-        proc.join()
-        return {f"died (exit {proc.exitcode})": "the process ended without a result (killed "
-                "for memory?)"}
+    status = _drain(proc, q, timeout, got.__setitem__)
     proc.join()
-    return got
+    if got:
+        return got
+    if status == "timeout":
+        return {"timeout": f"killed after --stage-timeout {timeout:g} s"}
+    return {status: "the process ended without a result (killed for memory?)"}

@@ -247,7 +247,8 @@ def _is_oom(e: BaseException) -> bool:
 def train_child(method: str, variant: str, arrays_path: str, params: dict, out_q):
     """Fresh process under the memory cap: one optimizer step of ``method`` (``variant``: a
     MeshODENet gradient mode, else ``"default"``) on the synthetic trajectories of
-    ``arrays_path``; puts ``("result", dict)`` or ``("error", text)``."""
+    ``arrays_path``; puts ``("result", dict)``, ``("nofit", text)`` or ``("error", text)``,
+    then ``("done", None)``."""
     cap = int(params.get("cap_bytes") or params["max_memory_gb"] * 1024**3)
     try:
         if not params["device"].startswith("cuda"):
@@ -263,6 +264,7 @@ def train_child(method: str, variant: str, arrays_path: str, params: dict, out_q
             out_q.put(("error", f"{type(e).__name__}: {text}"[:300]))
     except BaseException as e:  # noqa: BLE001 - reported to the parent
         out_q.put(("error", f"{type(e).__name__}: {e}"[:300]))
+    out_q.put(("done", None))
 
 
 def _train(method, variant, arrays_path, params, cap) -> dict:
