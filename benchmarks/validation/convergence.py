@@ -170,14 +170,12 @@ def write_frames(path: Path, frames: list[dict]) -> None:
 
 def plot(path: Path, frames: list[dict], case: str) -> None:
     """Probe displacement magnitude vs time, one line per r (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import pandas as pd
 
+    from benchmarks.suite.figures import _plt, _save
+
     df = pd.DataFrame(frames)
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = _plt().subplots(figsize=(7, 4))
     for r, g in df.groupby("r"):
         u = np.sqrt(g.ux_m**2 + g.uy_m**2 + g.uz_m**2)
         ax.plot(g.t_s, u, label=f"r = {r} ({int(g.nodes.iloc[0])} nodes)", lw=1)
@@ -186,9 +184,4 @@ def plot(path: Path, frames: list[dict], case: str) -> None:
     ax.set_title(f"{case}: mesh convergence of the probe's trajectory")
     ax.legend()
     fig.tight_layout()
-    import io
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    store.atomic_write(Path(path), lambda f: f.write(buf.getvalue()))
+    _save(fig, Path(path))
