@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import gc
 
+import numpy as np
 import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
@@ -114,6 +115,132 @@ def test_training_frames_are_converted_after_indexing():
     assert torch.equal(xk, pos[tr, k]) and torch.equal(x1, pos[tr, k + 1])
     assert torch.equal(vk, v * model.free[:, None])
     assert mode.nbytes < pos.untyped_storage().nbytes() / 4
+
+
+def _dense_training_loss(model, data, samples):
+    """The one-step training loss as it was before the band solve: the Newton matrix of the
+    active coordinates as a dense ``(B, n, n)`` tensor and torch's dense factorisation."""
+    traj, xk, vk, x1, h = model._frames(data, samples)
+    sys = model.system(data.youngs[traj])
+    act = model._active(xk, vk)
+    vk, h = model._implicit_form(vk, model._start(sys, xk, vk), h)
+    geo = sys.geometry(x1)
+    A = model._matrix(sys, x1, h, act, geo, xk, create_graph=model.config.exact_loss_gradient)
+    r = model._residual(sys, x1, xk, vk, h, create_graph=True, geo=geo)[:, act]
+    d = model._solve(A, r)
+    n = len(model.free.nonzero())
+    return (d**2).sum() / (len(traj) * n * float(model.ystats[3])), len(traj), len(act)
+
+
+@pytest.mark.parametrize("exact", [False, True])
+@pytest.mark.parametrize("learner", ["energy", "dissipation"])
+@pytest.mark.parametrize("make", [rod_arrays, strip_arrays])
+def test_training_loss_in_band_storage_is_the_dense_one(make, learner, exact):
+    """The one-step loss and its parameter gradients through the band solve (``BandSolve``)
+    equal those through the dense Newton matrix to round-off, with and without the matrix's
+    own dependence on the parameters (``exact_loss_gradient``), for the energy alone and
+    with the learned dissipation."""
+    from tests.test_energy_dissipation import _model
+
+    arrays = make(B=8, T=201)
+    data = Trajectories.from_arrays(arrays)
+    if learner == "energy":
+        model, _ = _energy(make, hidden=16, exact_loss_gradient=exact)
+        model._statistics(data)
+        torch.manual_seed(1)
+        with torch.no_grad():  # an energy whose MLP is not flat, so its Hessian matters
+            for p in model.parameters():
+                p.add_(0.1 * torch.randn_like(p))
+    else:
+        model, _ = _model(arrays, exact_loss_gradient=exact)
+    samples = torch.arange(0, len(data) * (data.n_frames - 1), 53)
+    params = [p for p in model.parameters() if p.requires_grad]
+    dense, B, n = _dense_training_loss(model, data, samples)
+    g_dense = torch.autograd.grad(dense, params, allow_unused=True)
+    band = model.training_loss(data, samples)
+    g_band = torch.autograd.grad(band, params, allow_unused=True)
+    assert torch.isfinite(band.detach()) and float(band.detach()) > 0
+    torch.testing.assert_close(band, dense, rtol=1e-10, atol=0)
+    some = 0
+    for a, b in zip(g_band, g_dense):
+        assert (a is None) == (b is None)
+        if a is not None:
+            scale = float(b.abs().max())
+            some += scale > 0
+            torch.testing.assert_close(a, b, rtol=0, atol=1e-9 * max(scale, 1e-300))
+    assert some >= 2
+
+
+@pytest.mark.parametrize("make", [lambda **k: rod_arrays(n_nodes=200, **k),
+                                  lambda **k: strip_arrays(nx=60, ny=4, **k)],
+                         ids=["rod", "strip"])
+def test_training_loss_never_forms_the_dense_newton_matrix(make):
+    """The one-step loss and its backward pass create no tensor of a quarter of the dense
+    Newton matrices' ``(B, n, n)`` size: what they hold grows with the mesh, not its
+    square."""
+    model, data = _energy(make, hidden=16, exact_loss_gradient=True)
+    model._statistics(data)
+    samples = torch.arange(0, len(data) * (data.n_frames - 1), 97)
+    with Largest() as mode:
+        loss = model.training_loss(data, samples)
+        loss.backward()
+    n = len(model._active(data.pos[:1, 0].double(), data.vel[:1, 0].double()))
+    assert n >= 390 and mode.nbytes < len(samples) * n * n * 8 / 4
+
+
+def _banded(n: int, w: int, definite: bool, seed: int = 0) -> tuple:
+    """A random symmetric matrix of bandwidth ``w``: ``(dense (n, n), lower band (w + 1,
+    n))``, positive definite or indefinite."""
+    g = np.random.default_rng(seed)
+    A = np.zeros((n, n))
+    for k in range(1, w + 1):
+        v = g.standard_normal(n - k)
+        A[np.arange(k, n), np.arange(n - k)] = A[np.arange(n - k), np.arange(k, n)] = v
+    A += np.diag(2.5 * w + g.random(n)) if definite else np.diag(g.standard_normal(n))
+    ab = np.zeros((w + 1, n))
+    for k in range(w + 1):
+        ab[k, :n - k] = np.diagonal(A, -k)
+    return A, ab
+
+
+@pytest.mark.parametrize("definite", [True, False])
+def test_band_solve_and_its_gradients(definite):
+    """``BandSolve`` solves its matrix (Cholesky, or LU where it is indefinite) as the dense
+    solve does, and its gradients in the right-hand side and in every stored entry pass
+    ``gradcheck`` (the padding entries outside the matrix get none)."""
+    from meshodenet.energy import linalg as la
+
+    A, ab = _banded(12, 3, definite)
+    assert (la.band_factor(ab)[0] == "band") == definite
+    b = np.random.default_rng(5).standard_normal((2, 12))
+    x = la.BandSolve.apply(torch.as_tensor(np.stack([ab, ab])), torch.as_tensor(b))
+    np.testing.assert_allclose(x.numpy(), np.linalg.solve(A, b.T).T, rtol=1e-12, atol=1e-12)
+    abt = torch.as_tensor(ab)[None].requires_grad_(True)
+    bt = torch.as_tensor(b[:1]).requires_grad_(True)
+    assert torch.autograd.gradcheck(la.BandSolve.apply, (abt, bt))
+    (la.BandSolve.apply(abt, bt) ** 2).sum().backward()
+    for k in range(1, 4):
+        assert not abt.grad[0, k, 12 - k:].any()
+
+
+def test_band_newton_step_of_an_indefinite_matrix_is_the_dense_one():
+    """The batched solver's step on an indefinite matrix: the LU step where it descends,
+    else the convexified Cholesky's, as ``factor`` and ``substitute`` give them densely."""
+    from meshodenet.energy import linalg as la
+
+    A, ab = _banded(30, 4, definite=False, seed=2)
+    dense = torch.as_tensor(A)[None]
+    for seed in range(6):
+        r = np.random.default_rng(seed).standard_normal((1, 30))
+        b = -torch.as_tensor(r)
+        fac = la.factor(dense)
+        ref = la.substitute(fac, b)
+        if float((b * ref).sum()) <= 0:
+            ref = la.substitute(la.factor(dense, convexify=True), b)
+        facs = [la.band_factor(ab)]
+        assert facs[0][0] == "lu"
+        np.testing.assert_allclose(la.band_solve(facs, r), ref.numpy(), rtol=1e-10,
+                                   atol=1e-12)
 
 
 # --- MeshGraphNet ------------------------------------------------------------------------------

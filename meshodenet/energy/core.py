@@ -454,18 +454,32 @@ class EnergySystem:
         with torch.set_grad_enabled(create_graph and torch.is_grad_enabled()):
             return self._hessian(x.detach(), geo, act, create_graph)
 
+    def hessian_band(self, x: torch.Tensor, pattern: BandPattern, geo=None,
+                     create_graph: bool = False, diag: torch.Tensor | None = None):
+        """``d2U/dx2`` (plus ``diag (n,)``) on ``pattern``'s unknowns in its band storage
+        ``(B, width + 1, n)`` (``BandPattern.band``): ``O(N)`` memory where ``hessian``'s
+        matrix is ``O(N^2)``; with ``create_graph`` differentiable in the parameters (``x`` a
+        constant)."""
+        with torch.set_grad_enabled(create_graph and torch.is_grad_enabled()):
+            return pattern.band(self._element_hessians(x.detach(), geo, create_graph), diag)
+
+    def _element_hessians(self, x, geo, create_graph: bool) -> dict:
+        """Per kind its elements' Hessians ``(B, n_e, 3k, 3k)`` at ``x``."""
+        out = {}
+        for kind, (q, dq, d2q) in (geo or self.geometry(x)).items():
+            d1, d2 = self.derivatives(kind, q, 2, create_graph)
+            out[kind] = d2[..., None, None] * dq[..., :, None] * dq[..., None, :] \
+                + d1[..., None, None] * d2q
+        return out
+
     def _hessian(self, x, geo, act, create_graph: bool):
         B, N, _ = x.shape
-        geo = geo or self.geometry(x)
         where = torch.arange(3 * N, device=x.device) if act is None else \
             torch.full((3 * N,), -1, dtype=torch.long, device=x.device).index_copy_(
                 0, act, torch.arange(len(act), device=x.device))
         n = 3 * N if act is None else len(act)
         H = x.new_zeros(B, n * n)
-        for kind, (q, dq, d2q) in geo.items():
-            d1, d2 = self.derivatives(kind, q, 2, create_graph)
-            he = d2[..., None, None] * dq[..., :, None] * dq[..., None, :] \
-                + d1[..., None, None] * d2q
+        for kind, he in self._element_hessians(x, geo, create_graph).items():
             dof = where[self._dofs(kind, N)]
             keep = ((dof[:, :, None] >= 0) & (dof[:, None, :] >= 0)).reshape(-1)
             flat = (dof[:, :, None] * n + dof[:, None, :]).reshape(-1)
@@ -480,6 +494,54 @@ _GEOMETRY = {"edge": lambda x, nodes, rest, l0, second: _edge_geometry(x, nodes,
                                                                               second)}
 
 
+class BandPattern:
+    """Where an ``EnergySystem``'s element Hessians go in LAPACK's lower band storage, on the
+    coordinates ``act`` of its Newton solves (``n`` of them), reordered so that the matrix is
+    banded (``band_order``): ``unknowns (n,)`` the flat coordinates ``3 node + axis`` in that
+    order (``cols`` the same as numpy), ``width`` the number of sub-diagonals, and per element
+    kind ``maps[kind] = (g_at, g_to, h_at, h_to)``: the entries of its elements' flattened
+    gradients ``(n_e 3k)`` that are unknowns and their positions in ``(n,)``, and the entries
+    of their flattened Hessians ``(n_e 3k 3k)`` on or below the band's diagonal and their
+    positions in the flattened band ``((width + 1) n)``, ``ab[i - j, j] = H[i, j]``. It depends
+    on the mesh and ``act`` only, so one serves every batch and every step."""
+
+    def __init__(self, sys: EnergySystem, act: torch.Tensor, n_nodes: int):
+        dev, n = act.device, len(act)
+        where = torch.full((3 * n_nodes,), -1, dtype=torch.long, device=dev)
+        where[act] = torch.arange(n, device=dev)
+        dofs = {k: where[sys._dofs(k, n_nodes)] for k in sys.elems}   # -1: not an unknown
+        pairs = torch.cat([torch.stack(torch.broadcast_tensors(d[:, :, None], d[:, None, :]),
+                                       -1).reshape(-1, 2) for d in dofs.values()])
+        perm = band_order(pairs[(pairs >= 0).all(1)].cpu().numpy(), n)
+        rank = np.full(n + 1, -1, np.int64)  # old index -> new position; rank[-1] = -1
+        rank[perm] = np.arange(n)
+        self.unknowns = act[torch.as_tensor(perm, device=dev)]
+        self.cols = self.unknowns.cpu().numpy()
+        self.n, self.width, self.maps = n, 0, {}
+        for k, d in dofs.items():
+            s = torch.as_tensor(rank, device=dev)[d]                     # (n_e, 3k)
+            a, b = (z.reshape(-1) for z in torch.broadcast_tensors(s[:, :, None], s[:, None, :]))
+            g_at = torch.nonzero(s.reshape(-1) >= 0)[:, 0]
+            h_at = torch.nonzero((b >= 0) & (a >= b))[:, 0]
+            self.width = max(self.width, int((a - b)[h_at].max()) if len(h_at) else 0)
+            self.maps[k] = (g_at, s.reshape(-1)[g_at], h_at, ((a - b) * n + b)[h_at])
+
+    def band(self, he: dict, diag: torch.Tensor | None = None) -> torch.Tensor:
+        """``ab (B, width + 1, n)``: the sum of the element Hessians ``he[kind] (B, n_e, 3k,
+        3k)`` (any of the kinds) and the diagonal ``diag (B, n)`` or ``(n,)`` (in
+        ``unknowns``' order) in band storage, differentiable in both."""
+        ref = next(iter(he.values()), None)
+        B = len(ref if ref is not None else diag)
+        ab = (ref if ref is not None else diag).new_zeros(B, (self.width + 1) * self.n)
+        for k, h in he.items():
+            _, _, h_at, h_to = self.maps[k]
+            ab = ab.index_add(1, h_to, h.reshape(B, -1)[:, h_at])
+        ab = ab.reshape(B, self.width + 1, self.n)
+        if diag is None:
+            return ab
+        return torch.cat([ab[:, :1] + diag.expand(B, self.n)[:, None], ab[:, 1:]], 1)
+
+
 class BatchedEnergy:
     """The energy of an ``EnergySystem`` on the ``n`` unknowns of a rollout's Newton solves,
     for any subset of its batch of ``B`` trajectories, without an autograd graph.
@@ -492,27 +554,12 @@ class BatchedEnergy:
     axis and applied with ``torch.bmm``, the input layer's part from the static features and
     the modulus computed once here)."""
 
-    def __init__(self, sys: EnergySystem, act: torch.Tensor, n_nodes: int):
+    def __init__(self, sys: EnergySystem, act: torch.Tensor, n_nodes: int,
+                 pattern: BandPattern | None = None):
         self.sys, self.kinds = sys, list(sys.elems)
-        dev, n = act.device, len(act)
-        where = torch.full((3 * n_nodes,), -1, dtype=torch.long, device=dev)
-        where[act] = torch.arange(n, device=dev)
-        dofs = {k: where[sys._dofs(k, n_nodes)] for k in self.kinds}   # -1: not an unknown
-        pairs = torch.cat([torch.stack(torch.broadcast_tensors(d[:, :, None], d[:, None, :]),
-                                       -1).reshape(-1, 2) for d in dofs.values()])
-        perm = band_order(pairs[(pairs >= 0).all(1)].cpu().numpy(), n)
-        rank = np.full(n + 1, -1, np.int64)  # old index -> new position; rank[-1] = -1
-        rank[perm] = np.arange(n)
-        self.unknowns = act[torch.as_tensor(perm, device=dev)]
-        self.cols = self.unknowns.cpu().numpy()  # the same, for the solver's numpy iteration
-        self.n, self.width, self.maps = n, 0, {}
-        for k, d in dofs.items():
-            s = torch.as_tensor(rank, device=dev)[d]                     # (n_e, 3k)
-            a, b = (z.reshape(-1) for z in torch.broadcast_tensors(s[:, :, None], s[:, None, :]))
-            g_at = torch.nonzero(s.reshape(-1) >= 0)[:, 0]
-            h_at = torch.nonzero((b >= 0) & (a >= b))[:, 0]
-            self.width = max(self.width, int((a - b)[h_at].max()) if len(h_at) else 0)
-            self.maps[k] = (g_at, s.reshape(-1)[g_at], h_at, ((a - b) * n + b)[h_at])
+        pat = pattern or BandPattern(sys, act, n_nodes)
+        self.unknowns, self.cols, self.n, self.width, self.maps = \
+            pat.unknowns, pat.cols, pat.n, pat.width, pat.maps
         self._stack_mlps()
 
     @torch.no_grad()

@@ -185,5 +185,13 @@ class Damping:
             C.index_add_(1, flat[keep], he.reshape(B, -1)[:, keep])
         return C.reshape(B, n, n)
 
+    def band(self, pattern) -> torch.Tensor:
+        """``C`` on the unknowns of ``pattern`` (a ``BandPattern``, whose ``edge`` elements
+        are these edges) in its band storage ``(B, width + 1, n)``."""
+        he = {} if self.alpha is None else \
+            {"edge": self.alpha[..., None, None] * self.dq[..., :, None] * self.dq[..., None, :]}
+        diag = None if self.beta is None else self.beta[:, pattern.unknowns // 3]
+        return pattern.band(he, diag)
+
 
 __all__ = ["DAMPING_TERMS", "DAMPING_TRAIN", "Damping", "DampingCoefficient", "N_NODE", "node_features"]

@@ -1,7 +1,7 @@
 """Factorisations of Implicit-Energy's Newton matrices (``meshodenet.energy.model``):
-dense Cholesky with an LU fallback or convexifying shifts, and LAPACK's banded Cholesky for the
-batched solver's matrices in band storage; the batched solver's line search, on numpy
-arrays."""
+dense Cholesky with an LU fallback or convexifying shifts, and the same three in LAPACK's band
+storage for the batched solver's matrices and the training loss (``BandSolve``, differentiable);
+the batched solver's line search, on numpy arrays."""
 
 from __future__ import annotations
 
@@ -37,35 +37,99 @@ def substitute(fac, b):
 
 
 def band_factor(ab: np.ndarray):
-    """A factorisation of the symmetric matrix in lower band storage ``ab (w + 1, n)``:
-    LAPACK's banded Cholesky (``dpbtrf``); where it is not positive definite, ``factor``'s
-    on the dense matrix (its LU, kept with the matrix for the convexified Cholesky)."""
+    """A factorisation of the symmetric matrix in lower band storage ``ab (w + 1, n)``
+    (``ab[i - j, j] = A[i, j]``): LAPACK's banded Cholesky (``dpbtrf``), or where it is not
+    positive definite its banded LU with partial pivoting (``dgbtrf``, kept with ``ab`` for
+    ``band_convexified``); ``O(n w)`` memory either way."""
     c, info = lapack.dpbtrf(ab, lower=1)
     if info == 0:
         return "band", c
-    w, n = ab.shape
-    A = np.zeros((n, n))
-    for k in range(w):
-        i = np.arange(n - k)
-        A[i + k, i] = A[i, i + k] = ab[k, :n - k]
-    A = torch.as_tensor(A)[None]
-    return "dense", factor(A), A
+    w = len(ab) - 1
+    lu, piv, _ = lapack.dgbtrf(general_band(ab), w, w)
+    return "lu", lu, piv, ab
+
+
+def general_band(ab: np.ndarray) -> np.ndarray:
+    """The symmetric matrix of lower band storage ``ab (w + 1, n)`` in LAPACK's general band
+    storage for ``dgbtrf`` ``(3 w + 1, n)``: ``A[i, j]`` at row ``2 w + i - j``."""
+    w, n = len(ab) - 1, ab.shape[1]
+    out = np.zeros((3 * w + 1, n))
+    out[2 * w] = ab[0]
+    for k in range(1, w + 1):
+        out[2 * w + k, :n - k] = ab[k, :n - k]    # A[j + k, j]
+        out[2 * w - k, k:] = ab[k, :n - k]        # A[j, j + k]
+    return out
+
+
+def band_convexified(ab: np.ndarray):
+    """``factor``'s convexified Cholesky in band storage: ``dpbtrf`` of ``ab`` with the
+    diagonal grown by ``shift |diag|``, ``shift`` from 1e-6 times 10 until it factorises."""
+    shift, info = 1e-6, 1
+    while info and shift < 1e4:
+        shifted = ab.copy()
+        shifted[0] += shift * np.abs(ab[0])
+        c, info = lapack.dpbtrf(shifted, lower=1)
+        shift *= 10
+    return "band", c
+
+
+def band_substitute(fac, b: np.ndarray) -> np.ndarray:
+    """``A^{-1} b`` ``(n,)`` of a factorisation ``fac`` of ``band_factor`` or
+    ``band_convexified``."""
+    if fac[0] == "band":
+        return lapack.dpbtrs(fac[1], b, lower=1)[0]
+    w = len(fac[3]) - 1
+    return lapack.dgbtrs(fac[1], w, w, b, fac[2])[0]
+
 
 def band_solve(facs: list, r: np.ndarray) -> np.ndarray:
     """The Newton steps ``-A^{-1} r`` ``(b, n)`` of the factorised matrices ``facs`` (one
-    per row of ``r``); a dense LU step that is not a descent direction is replaced by the
+    per row of ``r``); an LU step that is not a descent direction is replaced by the
     convexified one (``ImplicitEnergy._newton``)."""
     out = np.empty_like(r)
     for j, fac in enumerate(facs):
-        if fac[0] == "band":
-            out[j] = lapack.dpbtrs(fac[1], -r[j], lower=1)[0]
-            continue
-        b = torch.as_tensor(-r[j])[None]
-        dx = substitute(fac[1], b)
-        if fac[1][0] == "lu" and float((b * dx).sum()) <= 0:
-            facs[j] = fac = ("dense", factor(fac[2], convexify=True), fac[2])
-            dx = substitute(fac[1], b)
-        out[j] = dx[0].numpy()
+        dx = band_substitute(fac, -r[j])
+        if fac[0] == "lu" and float(-r[j] @ dx) <= 0:
+            facs[j] = fac = band_convexified(fac[3])
+            dx = band_substitute(fac, -r[j])
+        out[j] = dx
+    return out
+
+
+class BandSolve(torch.autograd.Function):
+    """``x = A^{-1} b`` per graph of symmetric ``A`` in lower band storage ``ab (B, w + 1,
+    n)`` and ``b (B, n)`` (``band_factor``: Cholesky, or LU where ``A`` is not positive
+    definite; no convexifying), differentiable in both: ``db = A^{-1} g``, and ``dA = -db
+    x^T`` on the stored entries (an entry below the diagonal stands for both of its
+    matrix's entries, so it gets both of theirs). The matrices never exist densely."""
+
+    @staticmethod
+    def forward(ctx, ab, b):
+        facs = [band_factor(a) for a in ab.detach().cpu().numpy()]
+        x = np.stack([band_substitute(f, v) for f, v in zip(facs, b.detach().cpu().numpy())])
+        x = torch.from_numpy(x).to(device=b.device, dtype=b.dtype)
+        ctx.facs, ctx.width = facs, ab.shape[1] - 1
+        ctx.save_for_backward(x)
+        return x
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        gb = np.stack([band_substitute(f, v) for f, v in zip(ctx.facs,
+                                                                  g.detach().cpu().numpy())])
+        gb = torch.from_numpy(gb).to(g)
+        gab = _band_outer(gb, x, ctx.width) if ctx.needs_input_grad[0] else None
+        return gab, gb
+
+
+def _band_outer(u: torch.Tensor, v: torch.Tensor, w: int) -> torch.Tensor:
+    """``-(u v^T + v u^T)`` below the diagonal and ``-u v`` on it, in band storage ``(B, w
+    + 1, n)``: the gradient of ``BandSolve``'s stored entries."""
+    B, n = u.shape
+    out = u.new_zeros(B, w + 1, n)
+    out[:, 0] = -u * v
+    for k in range(1, w + 1):
+        out[:, k, :n - k] = -(u[:, k:] * v[:, :n - k] + u[:, :n - k] * v[:, k:])
     return out
 
 

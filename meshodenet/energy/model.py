@@ -57,6 +57,7 @@ from torch import nn
 from meshodenet.energy import linalg as la
 from meshodenet.energy.config import INTEGRATORS, SOLVERS, STIFFNESS_PRIORS, EnergyConfig
 from meshodenet.energy.core import (
+    BandPattern,
     BatchedEnergy,
     ElementEnergy,
     EnergySystem,
@@ -209,6 +210,24 @@ class ImplicitEnergy(LeastSquaresStart, EnergyTransfer, TrajectoryModel):
         d = (self.mass / h**2 + self.damping / h).repeat_interleave(3)[act]
         return A + torch.diag(d)
 
+    def _band_matrix(self, sys, x, h, pat: BandPattern, geo=None, xk=None,
+                     create_graph: bool = False):
+        """``_matrix`` on ``pat``'s unknowns in its band storage ``(B, width + 1, n)``."""
+        d = (self.mass / h**2 + self.damping / h)[pat.unknowns // 3]
+        return sys.hessian_band(x.detach(), pat, geo, create_graph, diag=d)
+
+    def _pattern(self, sys, act) -> BandPattern:
+        """The band pattern of the coordinates ``act`` on this model's mesh (kept per mesh
+        and ``act``: a copy of the model on another mesh makes its own)."""
+        key = tuple(act.tolist())
+        mesh, cache = self.__dict__.get("_patterns", (None, None))
+        if mesh is not self.mesh:
+            cache = {}
+            self.__dict__["_patterns"] = (self.mesh, cache)
+        if key not in cache:
+            cache[key] = BandPattern(sys, act, self.mesh.n_nodes)
+        return cache[key]
+
     def _solve(self, A, b):
         return la.substitute(la.factor(A), b)
 
@@ -359,7 +378,7 @@ class ImplicitEnergy(LeastSquaresStart, EnergyTransfer, TrajectoryModel):
         """The batched solver's energy: ``BatchedEnergy``, or its numpy evaluation
         ``PlanarLineEnergy`` where that applies (a planar rod solved in its plane on the CPU;
         a subclass whose objective adds torch terms keeps ``line_numpy = False``)."""
-        be = BatchedEnergy(sys, act, self.mesh.n_nodes)
+        be = BatchedEnergy(sys, act, self.mesh.n_nodes, self._pattern(sys, act))
         return PlanarLineEnergy(be) if self.line_numpy and PlanarLineEnergy.applies(be) else be
 
     @torch.no_grad()
@@ -485,10 +504,11 @@ class ImplicitEnergy(LeastSquaresStart, EnergyTransfer, TrajectoryModel):
         act = self._active(xk, vk)
         vk, h = self._implicit_form(vk, self._start(sys, xk, vk), h)
         geo = sys.geometry(x1)
-        A = self._matrix(sys, x1, h, act, geo, xk,
-                         create_graph=self.config.exact_loss_gradient)
-        r = self._residual(sys, x1, xk, vk, h, create_graph=True, geo=geo)[:, act]
-        d = self._solve(A, r)
+        pat = self._pattern(sys, act)
+        A = self._band_matrix(sys, x1, h, pat, geo, xk,
+                              create_graph=self.config.exact_loss_gradient)
+        r = self._residual(sys, x1, xk, vk, h, create_graph=True, geo=geo)[:, pat.unknowns]
+        d = la.BandSolve.apply(A, r)
         n = len(self.free.nonzero())
         return (d**2).sum() / (len(traj) * n * float(self.ystats[3]))
 

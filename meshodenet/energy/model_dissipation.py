@@ -148,6 +148,11 @@ class ImplicitEnergyDissipation(ImplicitEnergy):
         A = super()._matrix(sys, x, h, act, geo, create_graph=create_graph)
         return A + self._damping(sys, xk).matrix(act, self.mesh.n_nodes) / h
 
+    def _band_matrix(self, sys, x, h, pat, geo=None, xk=None, create_graph: bool = False):
+        assert xk is not None, "the learned damping's matrix needs the step's start"
+        A = super()._band_matrix(sys, x, h, pat, geo, create_graph=create_graph)
+        return A + self._damping(sys, xk).band(pat) / h
+
     def _objective(self, sys, x, xk, vk, h):
         phi = super()._objective(sys, x, xk, vk, h)
         return phi + h * self._damping(sys, xk).dissipation((x - xk) / h)
