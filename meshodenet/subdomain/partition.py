@@ -61,7 +61,10 @@ def partition_nodes(edges: np.ndarray, n_nodes: int, k: int) -> np.ndarray:
         return np.zeros(n_nodes, np.int64)
     pymetis = _pymetis()
     a = adjacency(edges, n_nodes)
-    _, parts = pymetis.part_graph(int(k), xadj=a.indptr, adjncy=a.indices, recursive=False,
+    csr = getattr(pymetis, "CSRAdjacency", None)  # (pymetis >= 2025; before: xadj, adjncy)
+    graph = dict(adjacency=csr(a.indptr, a.indices)) if csr else dict(xadj=a.indptr,
+                                                                      adjncy=a.indices)
+    _, parts = pymetis.part_graph(int(k), **graph, recursive=False,
                                   options=pymetis.Options(**METIS_OPTIONS))
     parts = np.asarray(parts, np.int64)
     if len(np.unique(parts)) != k:  # METIS may leave a part empty on a tiny graph
