@@ -11,7 +11,9 @@ Inside ``meshodenet``, each sub-package may import only the pieces listed in ``A
 ``training`` builds on ``mesh``, ``integrators`` and the shared top-level modules; the two
 learners, ``gnn`` and ``energy``, build on those and never on each other. The one arrow from a
 learner to the top-level registry is ``gnn.pyg.register_pyg_model``, which registers a user's
-PyG model there when it is called.
+PyG model there when it is called. ``subdomain`` (patches of a mesh) evaluates the learners, so
+it imports ``gnn``, ``energy`` and ``mesh``, and no part of ``meshodenet`` imports it
+(``test_nothing_imports_subdomain``): only ``benchmarks`` may.
 
 Two checks per sub-package: a fresh interpreter imports every module of the sub-package with
 ``meshodenet/__init__.py`` left out (it re-exports from every sub-package, which would hide the
@@ -133,6 +135,7 @@ ALLOWED = {
     "training": {"mesh", "integrators", "interface", "metrics"},
     "gnn": {"mesh", "integrators", "training", "interface", "registry"},
     "energy": {"mesh", "integrators", "training", "interface"},
+    "subdomain": {"mesh", "gnn", "energy"},
 }
 #: What the shared top-level modules import at load time (``registry`` is left out: it imports
 #: every model, and ``gnn`` reaches it only when ``register_pyg_model`` is called).
@@ -231,6 +234,13 @@ def test_subpackage_import_statements(sub):
             if name.split(".")[0] in FORBIDDEN["meshodenet"] or (
                     part is not None and part != sub and part not in ALLOWED[sub]):
                 bad.append(f"{path.relative_to(ROOT)}: {name}")
+    assert not bad, bad
+
+
+def test_nothing_imports_subdomain():
+    bad = [f"{p.relative_to(ROOT)}: {n}" for p in sorted((ROOT / "meshodenet").rglob("*.py"))
+           if "subdomain" not in p.relative_to(ROOT).parts for n in _imported_names(p)
+           if _meshodenet_part(n) == "subdomain"]
     assert not bad, bad
 
 
