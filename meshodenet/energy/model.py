@@ -55,9 +55,9 @@ import torch
 from torch import nn
 
 from meshodenet.energy import linalg as la
+from meshodenet.energy.band import BandPattern
 from meshodenet.energy.config import INTEGRATORS, SOLVERS, STIFFNESS_PRIORS, EnergyConfig
 from meshodenet.energy.core import (
-    BandPattern,
     BatchedEnergy,
     ElementEnergy,
     EnergySystem,

@@ -190,15 +190,12 @@ def energy_gradient(model: ImplicitEnergy, patches: list[Patch], x: torch.Tensor
 
 def _element_hessian_rows(sub, patch: Patch, xp: torch.Tensor):
     """``(rows, cols, values (B, m))`` of the patch system ``sub``'s element Hessians
-    ``U''(q) dq dq^T + U'(q) d2q`` (``EnergySystem``) in global coordinates ``3 node + axis``,
+    (``EnergySystem.element_hessians``) in global coordinates ``3 node + axis``,
     the rows of inner coordinates only (duplicates not summed)."""
     nodes_g = torch.as_tensor(patch.nodes, device=xp.device)
     inner = torch.as_tensor(patch.inner, device=xp.device)
     rows, cols, vals = [], [], []
-    for kind, (q, dq, d2q) in sub.geometry(xp).items():
-        d1, d2 = sub.derivatives(kind, q, 2, False)
-        he = d2[..., None, None] * dq[..., :, None] * dq[..., None, :] \
-            + d1[..., None, None] * d2q                                  # (B, m, 3k, 3k)
+    for kind, he in sub.element_hessians(xp).items():                  # (B, m, 3k, 3k)
         local = sub.elems[kind][0]
         dof = (3 * nodes_g[local][:, :, None] + torch.arange(3, device=xp.device)).flatten(1)
         own = inner[local].repeat_interleave(3, 1)                       # (m, 3k)
