@@ -499,7 +499,16 @@ class ImplicitEnergy(LeastSquaresStart, EnergyTransfer, TrajectoryModel):
     def training_loss(self, data, samples, generator=None):
         if self.config.shooting:
             return self._window_loss(data, samples, generator)
-        traj, xk, vk, x1, h = self._frames(data, samples)
+        d, _ = self.one_step_errors(data, samples)
+        n = len(self.free.nonzero())
+        return (d**2).sum() / (len(samples) * n * float(self.ystats[3]))
+
+    def one_step_errors(self, data, samples, nodes=None):
+        """``(d (S, n), unknowns (n,))``: the one-step error linearised at the true next frame,
+        ``d = A^{-1} r(x_{k+1})`` (module doc), of the samples ``samples (S,)`` on the
+        coordinates ``unknowns`` (flat ``3 node + axis``, in the band's order) that Newton
+        solves for; with ``nodes`` (global ids) the frames at those nodes only."""
+        traj, xk, vk, x1, h = self._frames(data, samples, nodes)
         sys = self.system(data.youngs[traj])
         act = self._active(xk, vk)
         vk, h = self._implicit_form(vk, self._start(sys, xk, vk), h)
@@ -508,9 +517,7 @@ class ImplicitEnergy(LeastSquaresStart, EnergyTransfer, TrajectoryModel):
         A = self._band_matrix(sys, x1, h, pat, geo, xk,
                               create_graph=self.config.exact_loss_gradient)
         r = self._residual(sys, x1, xk, vk, h, create_graph=True, geo=geo)[:, pat.unknowns]
-        d = la.BandSolve.apply(A, r)
-        n = len(self.free.nonzero())
-        return (d**2).sum() / (len(traj) * n * float(self.ystats[3]))
+        return la.BandSolve.apply(A, r), pat.unknowns
 
     def _window_loss(self, data, samples, generator):
         S = self.config.shooting

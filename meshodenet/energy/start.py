@@ -25,6 +25,27 @@ FIT_CHUNK_BYTES = 16 * 2**20
 FIT_CHUNK_ALIGN = 64
 
 
+class _AtNodes:
+    """``a (B, T, N, 3)`` read at the nodes ``at (n,)``: ``[traj, j]`` (``traj (S,)``, ``j``
+    ``(S,)`` or an int) is ``(S, n, 3)``, gathered without taking whole frames."""
+
+    def __init__(self, a: torch.Tensor, at: torch.Tensor):
+        self.a, self.at = a, at
+
+    def __getitem__(self, key):
+        traj, j = key
+        j = torch.as_tensor(j, device=traj.device).expand_as(traj)
+        return self.a[traj[:, None], j[:, None], self.at]
+
+
+class _NodeFrames:
+    """The times of ``data`` and its positions and velocities at the nodes ``at``
+    (``_AtNodes``)."""
+
+    def __init__(self, data: Trajectories, at: torch.Tensor):
+        self.t, self.pos, self.vel = data.t, _AtNodes(data.pos, at), _AtNodes(data.vel, at)
+
+
 class LeastSquaresStart:
     """The statistics, training frames and least-squares start of ``ImplicitEnergy`` (see
     there for the buffers they fill)."""
@@ -60,13 +81,17 @@ class LeastSquaresStart:
                 qh = q / getattr(self, f"{k}_sigma")
                 getattr(self, f"{k}_qrange").copy_(torch.stack([qh.min(), qh.max()]))
 
-    def _frames(self, data: Trajectories, samples: torch.Tensor):
+    def _frames(self, data: Trajectories, samples: torch.Tensor, nodes=None):
         """``(traj, x_k, v_k, x_{k+1}, h)`` of samples, float64: ``v_k`` the backward
         difference (the stored ``v_0`` at frame 0) as in a backward-Euler rollout; Newmark's,
-        whose velocity is the trajectory's own, the stored one."""
+        whose velocity is the trajectory's own, the stored one. With ``nodes`` (global ids
+        ``(n,)``) the frames at those nodes only, indexed without taking a whole frame."""
         samples = samples.to(data.pos.device)
         T = data.n_frames
         traj, k = samples // (T - 1), samples % (T - 1)
+        if nodes is not None:
+            at = torch.as_tensor(nodes, device=data.pos.device)
+            data = _NodeFrames(data, at)
         # the samples' frames, then float64 (not the whole split converted per training step)
         pos = lambda j: data.pos[traj, j].to(torch.float64)  # noqa: E731
         t = data.t.to(torch.float64)

@@ -350,14 +350,25 @@ class MeshGraphNet(TrajectoryModel):
     def n_training_samples(self, data: Trajectories) -> int:
         return len(data) * (data.n_frames - 1)
 
-    def _frames(self, data: Trajectories, samples: torch.Tensor):
-        """Trajectory index and positions ``x_{k-1}, x_k, x_{k+1}`` ``(S, N, 3)`` of samples."""
+    def _frames(self, data: Trajectories, samples: torch.Tensor, nodes=None):
+        """Trajectory index and positions ``x_{k-1}, x_k, x_{k+1}`` ``(S, N, 3)`` of samples;
+        with ``nodes`` (global ids ``(n,)``) at those nodes only ``(S, n, 3)``, indexed out of
+        the frames without taking a whole frame."""
         samples = samples.to(data.pos.device)
         traj, k = samples // (data.n_frames - 1), samples % (data.n_frames - 1)
-        x, x_next = data.pos[traj, k], data.pos[traj, k + 1]
-        free = torch.as_tensor(self.mesh.node_type == 0, device=x.device)[:, None].to(x.dtype)
-        first = x - data.vel[traj, 0] * free * float(self.dt)  # x_{-1} = x_0 - v_0 dt
-        x_prev = torch.where((k == 0)[:, None, None], first, data.pos[traj, (k - 1).clamp(min=0)])
+        if nodes is None:
+            at, node_type = slice(None), self.mesh.node_type
+        else:
+            at, node_type = torch.as_tensor(nodes, device=data.pos.device), \
+                self.mesh.node_type[nodes]
+
+        def frame(a, j):
+            return a[traj, j] if nodes is None else a[traj[:, None], j[:, None], at]
+
+        x, x_next = frame(data.pos, k), frame(data.pos, k + 1)
+        free = torch.as_tensor(node_type == 0, device=x.device)[:, None].to(x.dtype)
+        first = x - frame(data.vel, torch.zeros_like(k)) * free * float(self.dt)  # x_{-1}
+        x_prev = torch.where((k == 0)[:, None, None], first, frame(data.pos, (k - 1).clamp(min=0)))
         return traj, x_prev, x, x_next
 
     def _add_noise(self, x, x_next, mask, generator):
@@ -376,15 +387,21 @@ class MeshGraphNet(TrajectoryModel):
         self._check_dt(data.t, "training data t")
         traj, x_prev, x, x_next = self._frames(data, samples)
         ctx = self.context(data.youngs[traj], x.dtype)
-        free = ctx.batch.free.reshape(len(traj), -1, 1)
+        err = self.node_errors(x_prev, x, x_next, ctx, generator)
+        return (err * ctx.batch.free).sum() / ctx.batch.free.sum().clamp_min(1)
+
+    def node_errors(self, x_prev, x, x_next, ctx: StepContext, generator=None) -> torch.Tensor:
+        """Per node the squared error ``(S n, 1)`` of the normalised acceleration, summed over
+        the active components, of the frames ``x_prev, x, x_next (S, n, 3)`` on the graph of
+        ``ctx`` (the whole mesh, or a patch of it), training noise added on its free nodes."""
+        free = ctx.batch.free.reshape(len(x), -1, 1)
         active = self.active.to(x.dtype)
         x, x_next = self._add_noise(x, x_next, free * active, generator)
         target = (x_next - 2 * x + x_prev).reshape(-1, 3) / ctx.dt ** 2
         std = torch.where(active > 0, ctx.acc_std, torch.ones_like(ctx.acc_std))
         target = (target - ctx.acc_mean) / std
         pred = self(x.reshape(-1, 3), x_prev.reshape(-1, 3), ctx)
-        err = ((pred - target) ** 2 * active).sum(-1, keepdim=True)
-        return (err * ctx.batch.free).sum() / ctx.batch.free.sum().clamp_min(1)
+        return ((pred - target) ** 2 * active).sum(-1, keepdim=True)
 
 
 # --- presets ------------------------------------------------------------------------------------

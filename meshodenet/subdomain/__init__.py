@@ -22,6 +22,10 @@ A patch keeps from the whole mesh everything but the topology, never recomputed 
 (``meshodenet.subdomain.evaluate``): node types, per-node arrays, normalisation statistics,
 the modulus, element features standardised over the whole mesh, rod hinge orientation.
 
+Training on patches (``PatchTraining``, ``meshodenet.subdomain.training``): every optimizer step
+sees patches of a fixed node budget plus their halo, the loss on their inner nodes; exact for
+MeshGraphNet, a driven (Dirichlet from the data) halo for Implicit-Energy's one-step solve.
+
 METIS comes from ``pymetis`` (``pip install 'meshbench[subdomain]'``), needed for ``k > 1``.
 """
 
@@ -37,12 +41,22 @@ from meshodenet.subdomain.evaluate import (
 )
 from meshodenet.subdomain.partition import (
     Patch,
+    driven_patches,
     element_patches,
     graph_patches,
     partition_nodes,
     patch_mesh,
 )
+from meshodenet.subdomain.training import (
+    PatchTraining,
+    energy_residual,
+    energy_view,
+    patch_count,
+    training_patches,
+)
 
-__all__ = ["Patch", "element_patches", "energy_gradient", "energy_hessian_rows", "feature_hops",
+__all__ = ["PatchTraining", "driven_patches", "energy_residual", "energy_view", "patch_count",
+           "training_patches",
+           "Patch", "element_patches", "energy_gradient", "energy_hessian_rows", "feature_hops",
            "graph_patches", "halo_depth", "meshodenet_field", "mgn_acceleration", "mgn_step",
            "model_patches", "partition_nodes", "patch_mesh"]

@@ -162,6 +162,30 @@ def element_patches(elements: dict, parts: np.ndarray) -> list[Patch]:
     return out
 
 
+def driven_patches(mesh: Mesh, elements: dict, parts: np.ndarray, rings: int) -> list[Patch]:
+    """Per part the patch of a solve with a driven boundary: its nodes and the nodes within
+    ``rings - 1`` hops (the unknowns, ``hops < rings``), the elements of ``elements`` (per kind
+    the element nodes ``(m, k)``, global ids) that touch an unknown, and all their nodes; the
+    nodes beyond the unknowns (``hops >= rings``) are the halo, held where the data puts them.
+    ``rings = 1``: the unknowns are the part's nodes, the patch is ``element_patches``'."""
+    if isinstance(rings, bool) or not isinstance(rings, (int, np.integer)) or rings < 1:
+        raise ValueError(f"rings must be an integer >= 1 (element rings of the halo), got "
+                         f"{rings!r}")
+    parts = np.asarray(parts, np.int64)
+    a = adjacency(mesh.edges, mesh.n_nodes)
+    out = []
+    for p in range(int(parts.max()) + 1):
+        hops = _rings(a, parts == p, int(rings) + 1)     # a rod hinge reaches 2 hops
+        hops[hops < 0] = int(rings) + 2
+        solved = hops < rings
+        kept = {kind: np.flatnonzero(solved[np.asarray(e, np.int64)].any(1))
+                for kind, e in elements.items()}
+        touched = [np.asarray(elements[kind], np.int64)[i].reshape(-1) for kind, i in kept.items()]
+        nodes = np.union1d(np.flatnonzero(solved), np.concatenate(touched + [np.zeros(0, int)]))
+        out.append(Patch(p, nodes, parts[nodes] == p, hops[nodes], kept))
+    return out
+
+
 def patch_mesh(mesh: Mesh, patch: Patch) -> Mesh:
     """The sub-mesh of ``patch`` (``graph_patches``): the whole mesh's node arrays (types,
     rest positions, masses, loads, drag) at its nodes, its edges and cells in local ids."""
