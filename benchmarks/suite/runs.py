@@ -378,7 +378,7 @@ def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_di
     train, val = full.subset(torch.as_tensor(tr_idx)), full.subset(torch.as_tensor(val_idx))
     del full  # the subsets are copies: the whole file's tensors need not stay for training
     torch.manual_seed(train_cfg.seed)
-    model = spec.build(mesh, model_cfg, train).to(dev)
+    model = on_patches(spec.build(mesh, model_cfg, train).to(dev), train_cfg)
     broadcast_parameters(model)
     sessions_path = out / "sessions.json"
     sessions = json.loads(sessions_path.read_text()) if sessions_path.exists() else []
@@ -427,6 +427,17 @@ def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_di
                        test_no_motion_rmse_m=metrics["no_motion_rmse_m"])
         store.save_json(out / "test_metrics.json", metrics)
     return summary
+
+
+def on_patches(model, train_cfg):
+    """``model`` trained on patches of ``train_cfg.patch_nodes`` nodes
+    (``meshodenet.subdomain.PatchTraining``: the model's own checkpoints), or ``model`` itself
+    when it is 0."""
+    if not train_cfg.patch_nodes:
+        return model
+    from meshodenet.subdomain import PatchTraining
+
+    return PatchTraining(model, train_cfg.patch_nodes)
 
 
 def load_run_model(path: Path, device="cpu", fix: str = ""):

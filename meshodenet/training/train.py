@@ -81,6 +81,9 @@ class TrainConfig:
     ``budgets_s`` (increasing CPU seconds) are the budget checkpoints of the module docstring;
     ``max_cpu_s`` > 0 ends training at the end of the epoch that spends that many CPU seconds
     (and is a budget checkpoint itself); 0 trains for ``epochs``.
+    ``patch_nodes`` > 0 trains on patches of the mesh of about that many nodes plus a halo
+    (``meshodenet.subdomain.PatchTraining``, wrapped around the model by the runner; a sample
+    is then a (sample, patch) pair); 0 trains on the whole mesh.
     """
 
     epochs: int = 400
@@ -99,11 +102,12 @@ class TrainConfig:
     max_batches: int = 0
     budgets_s: tuple = ()
     max_cpu_s: int = 0
+    patch_nodes: int = 0
 
     def __post_init__(self):
         for name, lo in (("epochs", 1), ("batch_size", 1), ("val_every", 1),
                          ("eval_batch_size", 1), ("split_seed", 0), ("seed", 0),
-                         ("max_batches", 0), ("max_cpu_s", 0)):
+                         ("max_batches", 0), ("max_cpu_s", 0), ("patch_nodes", 0)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise ValueError(f"TrainConfig.{name} must be an int >= {lo}, got {v!r}")
