@@ -182,3 +182,21 @@ def test_runner_wraps_the_model_when_patch_nodes_is_set(mgn):
     assert isinstance(pt, PatchTraining) and pt.k == 4 and pt.learner is mgn
     assert np.array_equal(np.sort(np.concatenate([p.inner_nodes for p in pt.patches])),
                           np.arange(mgn.mesh.n_nodes))
+
+
+def test_a_total_budget_bounds_every_patch_halo_included(plate, mgn, energy):
+    """With ``budget = "total"`` every patch, halo included, holds at most ``patch_nodes``
+    nodes (more parts are cut than ``ceil(N / patch_nodes)``); with ``inner`` the halo comes
+    on top; a halo that alone is about the budget is refused, naming ``patch_nodes``."""
+    for model, budget in ((mgn, 100), (energy, 40)):
+        inner = PatchTraining(model, budget)
+        total = PatchTraining(model, budget, budget="total")
+        assert max(p.n_nodes for p in inner.patches) > budget
+        assert max(p.n_nodes for p in total.patches) <= budget
+        assert total.k > inner.k == patch_count(plate[0].n_nodes, budget)
+    with pytest.raises(ValueError, match="patch_nodes = 40 .*halo"):
+        PatchTraining(mgn, 40, budget="total")  # 3 hops around any part: more than 40 nodes
+    with pytest.raises(ValueError, match="patch_budget"):
+        PatchTraining(mgn, 40, budget="halo")
+    with pytest.raises(ValueError, match="patch_budget"):
+        TrainConfig(patch_budget="all")

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-FIELDS = ("learner", "r", "n_nodes", "budget", "k", "patch_nodes_max", "batch", "steps",
+FIELDS = ("learner", "r", "n_nodes", "budget", "count", "k", "patch_nodes_max", "batch", "steps",
           "data_mb", "build_peak_mb", "before_steps_mb", "peak_mb", "step_mb", "step_s",
           "status")
 LEARNERS = ("mgn", "implicit_energy")
@@ -96,11 +96,12 @@ def _measure(learner: str, path: str, params: dict) -> dict:
     row = {"data_mb": _status_mb("VmRSS")}
     spec = get_model_spec(learner)
     train_cfg, model_cfg = spec.presets("quick", mesh.kind)
-    cfg = dataclasses.replace(train_cfg, batch_size=params["batch"], patch_nodes=params["budget"])
+    cfg = dataclasses.replace(train_cfg, batch_size=params["batch"], patch_nodes=params["budget"],
+                              patch_budget=params["count"])
     torch.manual_seed(0)
     model = spec.build(mesh, model_cfg, data)
     if cfg.patch_nodes:
-        model = PatchTraining(model, cfg.patch_nodes)
+        model = PatchTraining(model, cfg.patch_nodes, budget=cfg.patch_budget)
         row.update(k=model.k, patch_nodes_max=max(p.n_nodes for p in model.patches))
     else:
         row.update(k=1, patch_nodes_max=mesh.n_nodes)
@@ -120,7 +121,7 @@ def _measure(learner: str, path: str, params: dict) -> dict:
 def measure(learner: str, r: int, budget: int, path: Path, n_nodes: int, args) -> dict:
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    params = dict(budget=budget, batch=args.batch, steps=args.steps,
+    params = dict(budget=budget, count=args.count, batch=args.batch, steps=args.steps,
                   max_memory_gb=args.max_memory_gb)
     proc = ctx.Process(target=child, args=(learner, str(path), params, q))
     proc.start()
@@ -131,8 +132,8 @@ def measure(learner: str, r: int, budget: int, path: Path, n_nodes: int, args) -
     proc.join(5)
     if proc.is_alive():
         proc.kill()
-    base = dict(learner=learner, r=r, n_nodes=n_nodes, budget=budget, batch=args.batch,
-                steps=args.steps)
+    base = dict(learner=learner, r=r, n_nodes=n_nodes, budget=budget,
+                count=args.count if budget else "", batch=args.batch, steps=args.steps)
     return dict(base, **out) if isinstance(out, dict) else dict(base, status=out)
 
 
@@ -143,7 +144,8 @@ def table(rows: list) -> str:
         def f(k, fmt="{:.0f}", w=w):
             return fmt.format(w[k]) if k in w else "-"
 
-        lines.append(f"| {w['learner']} | {w['r']} | {w['n_nodes']} | {w['budget'] or 'whole'} "
+        budget = f"{w['budget']} ({w['count']})" if w["budget"] else "whole"
+        lines.append(f"| {w['learner']} | {w['r']} | {w['n_nodes']} | {budget} "
                      f"| {f('k')} | {f('patch_nodes_max')} | {f('before_steps_mb')} | "
                      f"{f('peak_mb')} | {f('step_mb')} | {f('step_s', '{:.2f}')} | "
                      f"{w['status']} |")
@@ -157,6 +159,9 @@ def main(argv=None) -> list:
                    help="resolutions also trained on the whole mesh")
     p.add_argument("--learners", nargs="+", default=list(LEARNERS), choices=LEARNERS)
     p.add_argument("--budget", type=int, default=2000)
+    p.add_argument("--count", choices=("inner", "total"), default="inner",
+                   help="what --budget counts: a part's inner nodes (the halo on top) or the "
+                   "whole patch (TrainConfig.patch_budget)")
     p.add_argument("--batch", type=int, default=2)
     p.add_argument("--steps", type=int, default=3)
     p.add_argument("--traj", type=int, default=2)

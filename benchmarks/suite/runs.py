@@ -430,14 +430,14 @@ def train_resolved(r: dict, out, decision: RunDecision | None = None, *, data_di
 
 
 def on_patches(model, train_cfg):
-    """``model`` trained on patches of ``train_cfg.patch_nodes`` nodes
-    (``meshodenet.subdomain.PatchTraining``: the model's own checkpoints), or ``model`` itself
-    when it is 0."""
+    """``model`` trained on patches of ``train_cfg.patch_nodes`` nodes (counted as
+    ``train_cfg.patch_budget`` says; ``meshodenet.subdomain.PatchTraining``: the model's own
+    checkpoints), or ``model`` itself when it is 0."""
     if not train_cfg.patch_nodes:
         return model
     from meshodenet.subdomain import PatchTraining
 
-    return PatchTraining(model, train_cfg.patch_nodes)
+    return PatchTraining(model, train_cfg.patch_nodes, budget=train_cfg.patch_budget)
 
 
 def load_run_model(path: Path, device="cpu", fix: str = ""):

@@ -59,6 +59,11 @@ NOT_ON_PATCHES = {
 }
 #: Implicit-Energy's patch losses.
 ENERGY_LOSSES = ("solve", "residual")
+#: What ``patch_nodes`` counts: a part's inner nodes (its halo on top: ``k = ceil(N /
+#: patch_nodes)``) or the whole patch, halo included (``k`` raised until every patch fits).
+PATCH_BUDGETS = ("inner", "total")
+#: METIS cuts tried for a ``total`` budget before giving up.
+MAX_CUTS = 12
 
 
 def patch_count(n_nodes: int, patch_nodes) -> int:
@@ -85,16 +90,44 @@ def _check_learner(learner) -> None:
                     f"{getattr(learner, 'name', type(learner).__name__)!r}: {why}")
 
 
-def training_patches(learner, patch_nodes: int, halo: int | None = None) -> list[Patch]:
-    """The patches ``PatchTraining`` cuts ``learner``'s mesh into: ``patch_count`` METIS parts,
-    grown by ``halo`` hops for MeshGraphNet (default ``halo_depth``) or into driven patches of
-    ``halo`` element rings for Implicit-Energy (default 1)."""
+def training_patches(learner, patch_nodes: int, halo: int | None = None,
+                     budget: str = "inner") -> list[Patch]:
+    """The patches ``PatchTraining`` cuts ``learner``'s mesh into: METIS parts grown by
+    ``halo`` hops for MeshGraphNet (default ``halo_depth``) or into driven patches of ``halo``
+    element rings for Implicit-Energy (default 1). ``budget`` (``PATCH_BUDGETS``): ``inner``
+    cuts ``patch_count`` parts; ``total`` cuts more until the largest patch, halo included,
+    holds at most ``patch_nodes`` nodes, and stops with a ``ValueError`` where the halo alone
+    is about that large (a deep halo across a wide mesh)."""
     _check_learner(learner)
-    mesh = learner.mesh
-    parts = partition_nodes(mesh.edges, mesh.n_nodes, patch_count(mesh.n_nodes, patch_nodes))
+    if budget not in PATCH_BUDGETS:
+        raise ValueError(f"patch_budget must be one of {', '.join(PATCH_BUDGETS)}, got "
+                         f"{budget!r}")
+    mesh, N = learner.mesh, learner.mesh.n_nodes
     if isinstance(learner, ImplicitEnergy):
-        return driven_patches(mesh, energy_elements(learner), parts, 1 if halo is None else halo)
-    return graph_patches(mesh, parts, halo_depth(learner) if halo is None else halo)
+        elements, rings = energy_elements(learner), 1 if halo is None else halo
+
+        def grow(parts):
+            return driven_patches(mesh, elements, parts, rings)
+    else:
+        hops = halo_depth(learner) if halo is None else halo
+
+        def grow(parts):
+            return graph_patches(mesh, parts, hops)
+
+    k = patch_count(N, patch_nodes)
+    for _ in range(MAX_CUTS):
+        patches = grow(partition_nodes(mesh.edges, N, k))
+        largest = max(p.n_nodes for p in patches)
+        if budget == "inner" or largest <= patch_nodes:
+            return patches
+        added = largest - N / k  # about what the halo adds to a part
+        if added >= patch_nodes or k == N:
+            break
+        k = max(k + 1, min(N, math.ceil(N / (patch_nodes - added))))
+    raise ValueError(f"patch_nodes = {patch_nodes} with patch_budget = 'total': cut into "
+                     f"{k} parts, the largest patch of {learner.mesh.describe()} still holds "
+                     f"{largest} nodes, its halo about {largest - N / k:.0f}; raise "
+                     "patch_nodes, or count the inner nodes only (patch_budget = 'inner')")
 
 
 def _sub_mesh(mesh: Mesh, nodes: np.ndarray) -> Mesh:
@@ -145,14 +178,15 @@ class PatchTraining(TrajectoryModel):
     interface, so ``fit`` trains it as any model. ``halo``: hops (MeshGraphNet, default
     ``halo_depth``) or element rings of the driven halo (Implicit-Energy, default 1).
     ``loss``: Implicit-Energy's patch loss, ``solve`` (its one-step loss with the halo driven)
-    or ``residual`` (``ENERGY_LOSSES``).
+    or ``residual`` (``ENERGY_LOSSES``). ``budget``: what ``patch_nodes`` counts, the inner
+    nodes or the whole patch (``PATCH_BUDGETS``, ``training_patches``).
 
     Its ``name``, ``config``, ``mesh``, parameters and ``state_dict`` are the learner's; its
     rollouts are the learner's on the whole mesh. ``patches`` are built once.
     """
 
     def __init__(self, learner: TrajectoryModel, patch_nodes: int, halo: int | None = None,
-                 loss: str = "solve"):
+                 loss: str = "solve", budget: str = "inner"):
         _check_learner(learner)
         if loss not in ENERGY_LOSSES:
             raise ValueError(f"loss must be one of {', '.join(ENERGY_LOSSES)}, got {loss!r}")
@@ -165,7 +199,7 @@ class PatchTraining(TrajectoryModel):
         self.patch_nodes, self.loss = int(patch_nodes), loss
         energy = isinstance(learner, ImplicitEnergy)
         self.halo = (1 if energy else halo_depth(learner)) if halo is None else halo
-        self.patches = training_patches(learner, patch_nodes, self.halo)
+        self.patches = training_patches(learner, patch_nodes, self.halo, budget)
         self._cache: dict = {}
 
     @property

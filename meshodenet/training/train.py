@@ -83,7 +83,9 @@ class TrainConfig:
     (and is a budget checkpoint itself); 0 trains for ``epochs``.
     ``patch_nodes`` > 0 trains on patches of the mesh of about that many nodes plus a halo
     (``meshodenet.subdomain.PatchTraining``, wrapped around the model by the runner; a sample
-    is then a (sample, patch) pair); 0 trains on the whole mesh.
+    is then a (sample, patch) pair); 0 trains on the whole mesh. ``patch_budget``: what
+    ``patch_nodes`` counts, ``inner`` (a part's nodes, the halo on top) or ``total`` (the
+    whole patch: a step's memory then bounded whatever the halo).
     """
 
     epochs: int = 400
@@ -103,6 +105,7 @@ class TrainConfig:
     budgets_s: tuple = ()
     max_cpu_s: int = 0
     patch_nodes: int = 0
+    patch_budget: str = "inner"
 
     def __post_init__(self):
         for name, lo in (("epochs", 1), ("batch_size", 1), ("val_every", 1),
@@ -120,6 +123,9 @@ class TrainConfig:
                 raise ValueError(f"TrainConfig.{name} has an invalid value {v!r}")
         from meshodenet.mesh.data import VAL_SPLITS
 
+        if self.patch_budget not in ("inner", "total"):
+            raise ValueError("TrainConfig.patch_budget must be one of inner, total, got "
+                             f"{self.patch_budget!r}")
         if self.val_split not in VAL_SPLITS:
             raise ValueError(f"TrainConfig.val_split must be one of {', '.join(VAL_SPLITS)}, "
                              f"got {self.val_split!r}")
