@@ -62,7 +62,7 @@ ENERGY_LOSSES = ("solve", "residual")
 #: What ``patch_nodes`` counts: a part's inner nodes (its halo on top: ``k = ceil(N /
 #: patch_nodes)``) or the whole patch, halo included (``k`` raised until every patch fits).
 PATCH_BUDGETS = ("inner", "total")
-#: METIS cuts tried for a ``total`` budget before giving up.
+#: METIS cuts tried for a ``total`` budget before one fits or it gives up (then a bisection).
 MAX_CUTS = 12
 
 
@@ -95,9 +95,11 @@ def training_patches(learner, patch_nodes: int, halo: int | None = None,
     """The patches ``PatchTraining`` cuts ``learner``'s mesh into: METIS parts grown by
     ``halo`` hops for MeshGraphNet (default ``halo_depth``) or into driven patches of ``halo``
     element rings for Implicit-Energy (default 1). ``budget`` (``PATCH_BUDGETS``): ``inner``
-    cuts ``patch_count`` parts; ``total`` cuts more until the largest patch, halo included,
-    holds at most ``patch_nodes`` nodes, and stops with a ``ValueError`` where the halo alone
-    is about that large (a deep halo across a wide mesh)."""
+    cuts ``patch_count`` parts; ``total`` cuts the fewest parts (more by the halo's estimated
+    size, then a bisection) whose largest patch, halo included, holds at most ``patch_nodes``
+    nodes (METIS's parts are not nested, so "fewest" is up to that), and stops with a
+    ``ValueError`` where the halo alone is about that large (a deep halo across a wide
+    mesh)."""
     _check_learner(learner)
     if budget not in PATCH_BUDGETS:
         raise ValueError(f"patch_budget must be one of {', '.join(PATCH_BUDGETS)}, got "
@@ -114,16 +116,32 @@ def training_patches(learner, patch_nodes: int, halo: int | None = None,
         def grow(parts):
             return graph_patches(mesh, parts, hops)
 
-    k = patch_count(N, patch_nodes)
-    for _ in range(MAX_CUTS):
+    def cut(k):
         patches = grow(partition_nodes(mesh.edges, N, k))
-        largest = max(p.n_nodes for p in patches)
-        if budget == "inner" or largest <= patch_nodes:
-            return patches
+        return patches, max(p.n_nodes for p in patches)
+
+    k = patch_count(N, patch_nodes)
+    patches, largest = cut(k)
+    if budget == "inner" or largest <= patch_nodes:
+        return patches
+    low = k  # the most parts known to leave a patch too large
+    for _ in range(MAX_CUTS):
         added = largest - N / k  # about what the halo adds to a part
         if added >= patch_nodes or k == N:
             break
         k = max(k + 1, min(N, math.ceil(N / (patch_nodes - added))))
+        patches, largest = cut(k)
+        if largest > patch_nodes:
+            low = k
+            continue
+        while k - low > 1:  # the fewest parts whose patches fit: fewer nodes computed twice
+            mid = (low + k) // 2
+            fewer, size = cut(mid)
+            if size <= patch_nodes:
+                k, patches = mid, fewer
+            else:
+                low = mid
+        return patches
     raise ValueError(f"patch_nodes = {patch_nodes} with patch_budget = 'total': cut into "
                      f"{k} parts, the largest patch of {learner.mesh.describe()} still holds "
                      f"{largest} nodes, its halo about {largest - N / k:.0f}; raise "
