@@ -76,6 +76,39 @@ def test_torchrun_two_ranks_match_one_process(tmp_path, one):
     assert (tmp_path / "two" / "best.pt").exists() and (tmp_path / "two" / "test_metrics.json").exists()
 
 
+def test_torchrun_two_ranks_on_patches_match_one_process(tmp_path, one):
+    """Training on patches across ranks (``train.patch_nodes``: 3 METIS parts of the 21-node
+    rod, each with MGN's 3-hop halo; a sample is a (frame, patch) pair, spread over the ranks
+    as any sample): two ranks end with the parameters of one process that sees the same
+    samples, to float32 round-off, and the same losses."""
+    from meshodenet.registry import load_model
+
+    args = [*one[0], "--set", "train.patch_nodes=7"]
+    runs = {}
+    for name, launcher in (("one", CLI), ("two", [str(Path(sys.executable).parent / "torchrun"),
+                                                  "--nproc-per-node", "2", "--standalone",
+                                                  "-m", "benchmarks.cli"])):
+        r = subprocess.run(launcher + ["train", *args, "--out", str(tmp_path / name)],
+                           env={**ENV, "PYTHONFAULTHANDLER": "1"}, capture_output=True,
+                           text=True, timeout=300)
+        assert r.returncode == 0, _crash_report(r.stderr)
+        runs[name] = (pd.read_csv(tmp_path / name / "history.csv"),
+                      load_model(tmp_path / name / "last.pt")[0].state_dict())
+    (h1, p1), (h2, p2) = runs["one"], runs["two"]
+    assert len(h1) == len(h2) == 3
+    assert ((h2["train_loss"] - h1["train_loss"]).abs() / h1["train_loss"]).max() < 1e-4
+    assert p1.keys() == p2.keys()
+    moved = 0
+    for k, a in p1.items():
+        if a.is_floating_point():
+            scale = float(a.abs().max()) or 1.0
+            assert float((p2[k] - a).abs().max()) <= 1e-4 * scale, k
+            moved += 1
+    assert moved > 4
+    config = json.loads((tmp_path / "two" / "config.json").read_text())
+    assert config["train"]["patch_nodes"] == 7
+
+
 @pytest.mark.slow
 def test_half_the_batch_in_one_process_differs(tmp_path, one):
     """What a rank computes alone trains differently: the comparison above can fail."""

@@ -5,8 +5,9 @@ step's memory depends on the budget, not on the mesh.
 One training sample is (the learner's sample, patch): ``n_training_samples`` is the learner's
 times the number of patches ``k = ceil(N / patch_nodes)`` (METIS parts of at most about
 ``patch_nodes`` nodes, ``partition_nodes``). A batch's loss is the learner's loss summed over
-the inner nodes of its samples' patches, divided by the number of those nodes: a batch that
-holds every patch of the same frames gives the whole mesh's loss.
+the inner nodes of its samples' patches, divided by the number of samples times the mean
+number of free inner nodes of a patch (the free nodes over ``k``): a batch that holds every
+patch of the same frames gives the whole mesh's loss, and any batch the mean of its samples'.
 
 - MeshGraphNet: one step, exact. Its patches are ``graph_patches`` with the halo
   ``halo_depth(model)``; the squared error of the normalised acceleration at the inner nodes
@@ -247,14 +248,19 @@ class PatchTraining(TrajectoryModel):
         return self.learner.n_training_samples(data) * self.k
 
     def training_loss(self, data, samples, generator=None):
-        """The learner's loss over the inner nodes of the samples' patches (module doc)."""
+        """The learner's loss summed over the inner nodes of the samples' patches, over the
+        number of samples times the mean number of free inner nodes of a patch (module doc):
+        a fixed divisor, so the loss of a batch is the mean of its samples' and ranks that
+        split a batch evenly average to the batch's loss (a divisor counted per batch would
+        weigh each rank's patches by their own sizes)."""
         samples = samples.to(data.pos.device)
         own, part = samples // self.k, samples % self.k
-        total, count = 0.0, 0
+        total = 0.0
         for p in torch.unique(part).tolist():
-            s, c = self.patch_loss(self.patches[p], data, own[part == p], generator)
-            total, count = total + s, count + c
-        return total / max(count, 1)
+            total = total + self.patch_loss(self.patches[p], data, own[part == p],
+                                            generator)[0]
+        free = int((self.learner.mesh.node_type == 0).sum())
+        return total / (len(samples) * max(free, 1) / self.k)
 
     def patch_loss(self, patch: Patch, data, samples, generator=None):
         """``(sum, count)``: the learner's loss of its samples ``samples`` on ``patch``, summed
