@@ -6,8 +6,10 @@ One training sample is (the learner's sample, patch): ``n_training_samples`` is 
 times the number of patches ``k = ceil(N / patch_nodes)`` (METIS parts of at most about
 ``patch_nodes`` nodes, ``partition_nodes``). A batch's loss is the learner's loss summed over
 the inner nodes of its samples' patches, divided by the number of samples times the mean
-number of free inner nodes of a patch (the free nodes over ``k``): a batch that holds every
-patch of the same frames gives the whole mesh's loss, and any batch the mean of its samples'.
+number of inner nodes of a patch the learner's loss is a mean over (the free nodes, for
+MeshODENet every node, over ``k``: ``node_terms``): a batch that holds every patch of the
+same frames gives the whole mesh's loss where the patches are exact, and any batch the mean
+of its samples'.
 
 - MeshGraphNet: one step, exact. Its patches are ``graph_patches`` with the halo
   ``halo_depth(model)``; the squared error of the normalised acceleration at the inner nodes
@@ -22,6 +24,14 @@ patch of the same frames gives the whole mesh's loss, and any batch the mean of 
   whole mesh's loss (measured in docs/SUBDOMAIN.md); ``loss = "residual"`` is the unbiased
   alternative, the residual ``|r|^2`` at the inner nodes scaled by ``h^2 / m`` into metres
   (exact on ``rings = 1`` patches, no solve), a different loss from the learner's own.
+- MeshODENet: its loss integrates the field over a window of ``S`` steps, which reads
+  ``layers x stages x S`` hops. On a patch the part's nodes and ``buffer`` rings around them
+  are solved and the ``halo_depth`` hops beyond are driven: at every Runge-Kutta stage their
+  states are the ground truth's, cubic-Hermite interpolated between the stored frames
+  (``meshodenet.subdomain.driven``). Exact for one patch and for a buffer as deep as the
+  window's stencil, biased otherwise (measured in docs/SUBDOMAIN.md). Fixed-step explicit
+  integrators and the ``mse`` loss only (with ``frame_weight`` and the release term, sums
+  over nodes); its mean is over every node, so the divisor counts every node, not the free.
 
 Everything else is the whole mesh's, looked up: the normalisation statistics (the model's,
 taken from the whole training split when it was built, never from a patch), node types,
