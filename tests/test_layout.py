@@ -136,7 +136,7 @@ ALLOWED = {
     "training": {"mesh", "integrators", "interface", "metrics"},
     "gnn": {"mesh", "integrators", "training", "interface", "registry"},
     "energy": {"mesh", "integrators", "training", "interface"},
-    "subdomain": {"mesh", "gnn", "energy", "interface"},
+    "subdomain": {"mesh", "integrators", "gnn", "energy", "interface"},
 }
 #: What the shared top-level modules import at load time (``registry`` is left out: it imports
 #: every model, and ``gnn`` reaches it only when ``register_pyg_model`` is called).

@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from meshodenet.energy.model import ImplicitEnergy, energy_presets
-from meshodenet.gnn.meshodenet import MeshODENet, meshodenet_presets
+from meshodenet.gnn.imex import MeshODENetIMEX, imex_presets
 from meshodenet.gnn.mgn import MeshGraphNet, MeshGraphNetConfig
 from meshodenet.subdomain import PatchTraining, energy_view, halo_depth, patch_count
 from meshodenet.training.train import TrainConfig, fit, load_checkpoint
@@ -136,9 +136,9 @@ def test_bad_input_names_the_field(plate, mgn, energy):
     with pytest.raises(ValueError, match="patch_nodes"):
         TrainConfig(patch_nodes=-1)
     assert patch_count(mesh.n_nodes, 2000 if mesh.n_nodes >= 2000 else mesh.n_nodes) == 1
-    ode = MeshODENet(mesh, meshodenet_presets("smoke", mesh.kind)[1], plate[1])
-    with pytest.raises(TypeError, match="meshodenet.*window"):
-        PatchTraining(ode, 50)
+    imex = MeshODENetIMEX(mesh, imex_presets("smoke", mesh.kind)[1], plate[1])
+    with pytest.raises(TypeError, match="meshodenet_imex.*implicit-explicit"):
+        PatchTraining(imex, 50)
     shooting = ImplicitEnergy(mesh, dataclasses.replace(energy.config, shooting=2), plate[1])
     with pytest.raises(ValueError, match="shooting"):
         PatchTraining(shooting, 50)

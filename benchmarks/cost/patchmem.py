@@ -1,7 +1,8 @@
 """Peak memory of training on patches against the mesh (docs/SUBDOMAIN.md, "Memory"):
 ``python -m benchmarks.cost.patchmem``.
 
-Per learner (MeshGraphNet and Implicit-Energy, their ``quick`` presets on triangle meshes) and
+Per learner (MeshGraphNet, Implicit-Energy and MeshODENet, their ``quick`` presets on triangle
+meshes; MeshODENet's windows of ``--window`` steps, its driven halo on patches) and
 per resolution ``r`` of ``plate_cantilever@rN``, one fresh process (one thread, under an
 address-space limit of ``--max-memory-gb``, ``RLIMIT_AS``, as ``scaleprocs.train_child``)
 loads synthetic trajectories (``scalecore.synthetic_training``: the cost of a step does not
@@ -30,9 +31,10 @@ from pathlib import Path
 import numpy as np
 
 FIELDS = ("learner", "r", "n_nodes", "budget", "count", "k", "patch_nodes_max", "batch", "steps",
+          "window",
           "data_mb", "build_peak_mb", "before_steps_mb", "peak_mb", "step_mb", "step_s",
           "status")
-LEARNERS = ("mgn", "implicit_energy")
+LEARNERS = ("mgn", "implicit_energy", "meshodenet")
 SAVE_DT = 0.01
 
 
@@ -96,6 +98,8 @@ def _measure(learner: str, path: str, params: dict) -> dict:
     row = {"data_mb": _status_mb("VmRSS")}
     spec = get_model_spec(learner)
     train_cfg, model_cfg = spec.presets("quick", mesh.kind)
+    if learner == "meshodenet" and params["window"]:
+        model_cfg = dataclasses.replace(model_cfg, shooting=params["window"])
     cfg = dataclasses.replace(train_cfg, batch_size=params["batch"], patch_nodes=params["budget"],
                               patch_budget=params["count"])
     torch.manual_seed(0)
@@ -122,7 +126,7 @@ def measure(learner: str, r: int, budget: int, path: Path, n_nodes: int, args) -
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
     params = dict(budget=budget, count=args.count, batch=args.batch, steps=args.steps,
-                  max_memory_gb=args.max_memory_gb)
+                  window=args.window, max_memory_gb=args.max_memory_gb)
     proc = ctx.Process(target=child, args=(learner, str(path), params, q))
     proc.start()
     try:
@@ -133,7 +137,8 @@ def measure(learner: str, r: int, budget: int, path: Path, n_nodes: int, args) -
     if proc.is_alive():
         proc.kill()
     base = dict(learner=learner, r=r, n_nodes=n_nodes, budget=budget,
-                count=args.count if budget else "", batch=args.batch, steps=args.steps)
+                count=args.count if budget else "", batch=args.batch, steps=args.steps,
+                window=args.window if learner == "meshodenet" else "")
     return dict(base, **out) if isinstance(out, dict) else dict(base, status=out)
 
 
@@ -162,6 +167,9 @@ def main(argv=None) -> list:
     p.add_argument("--count", choices=("inner", "total"), default="inner",
                    help="what --budget counts: a part's inner nodes (the halo on top) or the "
                    "whole patch (TrainConfig.patch_budget)")
+    p.add_argument("--window", type=int, default=5,
+                   help="meshodenet: steps per training window (shooting; 0: the preset's "
+                   "whole rollouts of --frames - 1 steps)")
     p.add_argument("--batch", type=int, default=2)
     p.add_argument("--steps", type=int, default=3)
     p.add_argument("--traj", type=int, default=2)

@@ -356,21 +356,11 @@ class MeshODENet(TrajectoryModel):
                       .sum(-1).mean()) for d in range(1, S + 1)], dtype=torch.float64)
         return self._loss_scales[key]
 
-    def training_loss(self, data, samples, generator=None):
-        """Mean over windows, predicted frames and nodes of ``|x_pred - x_true|^2``, divided by
-        the same mean for the no-motion prediction on the training split (``_loss_scale``).
-        With ``frame_weight = p > 0``: the mean over the window's frames ``d`` of their mean
-        square error times ``s_d^-p`` (``_frame_scales``), divided by the mean of
-        ``s_d^(1-p)``, its value for standing still.
-
-        With ``loss="rms"``: the mean over windows of the root of each window's mean square
-        error relative to standing still (``frame_weight`` 0).
-
-        This is the paper's loss (its eq. for ``L(theta)``: squared position error summed over
-        nodes, averaged over samples and frames) divided by a constant, so that standing still
-        scores 1 whatever the case's units or the shooting horizon, and the size of the
-        gradients relative to Adam's coupled weight decay does not depend on them either.
-        """
+    def windows(self, data, samples, generator=None):
+        """``(traj (n,), start (n,), S)``: the trajectory and first frame of each window that
+        ``samples (n,)`` names (``n_training_samples``), on ``data``'s device, and the windows'
+        intervals ``S`` (``horizon``); the random offsets of multiple shooting and the windows
+        moved to the release (``release_fraction``) drawn from ``generator``."""
         n_int = data.n_frames - 1
         S = self.horizon(n_int)
         n_w = n_int // S
@@ -387,7 +377,39 @@ class MeshODENet(TrajectoryModel):
             if k:  # the batch's order is already random: its first k windows
                 start[:k] = 0
         dev = data.pos.device
-        traj, start = traj.to(dev), start.to(dev)
+        return traj.to(dev), start.to(dev), S
+
+    def frame_weights(self, data: Trajectories, S: int) -> torch.Tensor:
+        """``W (S,)`` float64: the ``mse`` loss of windows of ``S`` intervals
+        (``training_loss``) as the sum over windows, frames ``d`` and nodes of
+        ``W_d |x_pred - x_true|^2``, over the number of windows times the number of nodes:
+        ``W_d = 1 / (S scale)`` (``_loss_scale``), or with ``frame_weight = p``
+        ``s_d^-p / (S mean(s_d^(1-p)))``. A sum over nodes splits over patches
+        (``meshodenet.subdomain.PatchTraining``)."""
+        p = self.config.frame_weight
+        if not p:
+            return torch.full((S,), 1.0 / (S * self._loss_scale(data, S)), dtype=torch.float64)
+        s_d = self._frame_scales(data, S).clamp_min(1e-30)  # a frame that never moves
+        w = s_d.pow(-p)
+        return w / (S * float((s_d * w).mean()))
+
+    def training_loss(self, data, samples, generator=None):
+        """Mean over windows, predicted frames and nodes of ``|x_pred - x_true|^2``, divided by
+        the same mean for the no-motion prediction on the training split (``_loss_scale``).
+        With ``frame_weight = p > 0``: the mean over the window's frames ``d`` of their mean
+        square error times ``s_d^-p`` (``_frame_scales``), divided by the mean of
+        ``s_d^(1-p)``, its value for standing still.
+
+        With ``loss="rms"``: the mean over windows of the root of each window's mean square
+        error relative to standing still (``frame_weight`` 0).
+
+        This is the paper's loss (its eq. for ``L(theta)``: squared position error summed over
+        nodes, averaged over samples and frames) divided by a constant, so that standing still
+        scores 1 whatever the case's units or the shooting horizon, and the size of the
+        gradients relative to Adam's coupled weight decay does not depend on them either.
+        """
+        traj, start, S = self.windows(data, samples, generator)
+        dev = data.pos.device
         frames = start[:, None] + torch.arange(S + 1, device=dev)
         t = data.t[: S + 1] - data.t[0]
         pred, _ = self.rollout(data.pos[traj, start], data.vel[traj, start],
@@ -415,8 +437,14 @@ class MeshODENet(TrajectoryModel):
         pred, _ = self.rollout(data.pos[traj, 0], data.vel[traj, 0], data.youngs[traj],
                                data.t[:2] - data.t[0])
         sq = ((pred[:, 1] - data.pos[traj, 1]) ** 2).sum(-1).mean()
+        return sq / self.release_scale(data)
+
+    @torch.no_grad()
+    def release_scale(self, data: Trajectories) -> float:
+        """The mean of ``|x_1 - x_0|^2`` over trajectories and nodes of the training split
+        ``data``: the release loss of standing still (cached; at least 1e-30)."""
         key = ("release", data.pos.data_ptr(), tuple(data.pos.shape))
         if key not in self._loss_scales:
             self._loss_scales[key] = float(
                 ((data.pos[:, 1] - data.pos[:, 0]).double() ** 2).sum(-1).mean())
-        return sq / max(self._loss_scales[key], 1e-30)
+        return max(self._loss_scales[key], 1e-30)

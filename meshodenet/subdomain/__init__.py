@@ -24,7 +24,9 @@ the modulus, element features standardised over the whole mesh, rod hinge orient
 
 Training on patches (``PatchTraining``, ``meshodenet.subdomain.training``): every optimizer step
 sees patches of a fixed node budget plus their halo, the loss on their inner nodes; exact for
-MeshGraphNet, a driven (Dirichlet from the data) halo for Implicit-Energy's one-step solve.
+MeshGraphNet, a driven (Dirichlet from the data) halo for Implicit-Energy's one-step solve, a
+halo driven by the data's interpolant at every Runge-Kutta stage for MeshODENet's windows
+(``meshodenet.subdomain.driven``).
 
 METIS comes from ``pymetis`` (``pip install 'meshbench[subdomain]'``), needed for ``k > 1``.
 """

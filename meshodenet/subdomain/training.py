@@ -6,8 +6,10 @@ One training sample is (the learner's sample, patch): ``n_training_samples`` is 
 times the number of patches ``k = ceil(N / patch_nodes)`` (METIS parts of at most about
 ``patch_nodes`` nodes, ``partition_nodes``). A batch's loss is the learner's loss summed over
 the inner nodes of its samples' patches, divided by the number of samples times the mean
-number of free inner nodes of a patch (the free nodes over ``k``): a batch that holds every
-patch of the same frames gives the whole mesh's loss, and any batch the mean of its samples'.
+number of inner nodes of a patch the learner's loss is a mean over (the free nodes, for
+MeshODENet every node, over ``k``: ``node_terms``): a batch that holds every patch of the
+same frames gives the whole mesh's loss where the patches are exact, and any batch the mean
+of its samples'.
 
 - MeshGraphNet: one step, exact. Its patches are ``graph_patches`` with the halo
   ``halo_depth(model)``; the squared error of the normalised acceleration at the inner nodes
@@ -22,6 +24,14 @@ patch of the same frames gives the whole mesh's loss, and any batch the mean of 
   whole mesh's loss (measured in docs/SUBDOMAIN.md); ``loss = "residual"`` is the unbiased
   alternative, the residual ``|r|^2`` at the inner nodes scaled by ``h^2 / m`` into metres
   (exact on ``rings = 1`` patches, no solve), a different loss from the learner's own.
+- MeshODENet: its loss integrates the field over a window of ``S`` steps, which reads
+  ``layers x stages x S`` hops. On a patch the part's nodes and ``buffer`` rings around them
+  are solved and the ``halo_depth`` hops beyond are driven: at every Runge-Kutta stage their
+  states are the ground truth's, cubic-Hermite interpolated between the stored frames
+  (``meshodenet.subdomain.driven``). Exact for one patch and for a buffer as deep as the
+  window's stencil, biased otherwise (measured in docs/SUBDOMAIN.md). Fixed-step explicit
+  integrators and the ``mse`` loss only (with ``frame_weight`` and the release term, sums
+  over nodes); its mean is over every node, so the divisor counts every node, not the free.
 
 Everything else is the whole mesh's, looked up: the normalisation statistics (the model's,
 taken from the whole training split when it was built, never from a patch), node types,
@@ -40,19 +50,20 @@ import torch
 
 from meshodenet.energy.model import ImplicitEnergy
 from meshodenet.gnn.features import graph_context
+from meshodenet.gnn.meshodenet import MeshODENet
 from meshodenet.gnn.mgn import MeshGraphNet, StepContext
 from meshodenet.interface import TrajectoryModel
 from meshodenet.mesh.data import Mesh
+from meshodenet.subdomain.driven import check_driven, driven_windows
 from meshodenet.subdomain.evaluate import energy_elements, halo_depth, patch_topology
 from meshodenet.subdomain.partition import Patch, driven_patches, graph_patches, partition_nodes
 
 #: The learners ``PatchTraining`` trains, and why the others cannot be (yet).
-PATCH_LEARNERS = (MeshGraphNet, ImplicitEnergy)
+PATCH_LEARNERS = (MeshGraphNet, ImplicitEnergy, MeshODENet)
 NOT_ON_PATCHES = {
-    "meshodenet": "its loss integrates the vector field over a window of frames: the halo "
-                  "would have to follow the ground truth at every Runge-Kutta stage "
-                  "(docs/SUBDOMAIN.md, 'MeshODENet')",
-    "meshodenet_imex": "as meshodenet: a windowed loss through its integrator",
+    "meshodenet_imex": "its window is stepped by its own implicit-explicit scheme, not by the "
+                       "Runge-Kutta solver that drives MeshODENet's halo (the same driven "
+                       "halo would apply: docs/SUBDOMAIN.md, 'MeshODENet')",
     "mgn_unrolled": "its loss rolls out several steps of its own: the halo of the later "
                     "steps is its prediction, not a one-step stencil",
     "implicit_energy_dissipation": "its learned dissipation holds per-node features that a "
@@ -84,6 +95,8 @@ def _check_learner(learner) -> None:
             raise ValueError("patch training of implicit_energy needs shooting = 0 (the "
                              "one-step loss): a window of exact steps solves Newton on the "
                              "whole mesh at every step")
+        if isinstance(learner, MeshODENet):
+            check_driven(learner.config)
         return
     why = NOT_ON_PATCHES.get(getattr(learner, "name", ""), "it is not one of them")
     raise TypeError(f"patch training is defined for "
@@ -92,10 +105,12 @@ def _check_learner(learner) -> None:
 
 
 def training_patches(learner, patch_nodes: int, halo: int | None = None,
-                     budget: str = "inner") -> list[Patch]:
+                     budget: str = "inner", buffer: int = 0) -> list[Patch]:
     """The patches ``PatchTraining`` cuts ``learner``'s mesh into: METIS parts grown by
-    ``halo`` hops for MeshGraphNet (default ``halo_depth``) or into driven patches of ``halo``
-    element rings for Implicit-Energy (default 1). ``budget`` (``PATCH_BUDGETS``): ``inner``
+    ``halo`` hops for MeshGraphNet (default ``halo_depth``), by ``buffer + halo`` hops for
+    MeshODENet (``buffer`` rings solved, ``halo`` driven, ``meshodenet.subdomain.driven``), or
+    into driven patches of ``halo`` element rings for Implicit-Energy (default 1).
+    ``budget`` (``PATCH_BUDGETS``): ``inner``
     cuts ``patch_count`` parts; ``total`` cuts the fewest parts (more by the halo's estimated
     size, then a bisection) whose largest patch, halo included, holds at most ``patch_nodes``
     nodes (METIS's parts are not nested, so "fewest" is up to that), and stops with a
@@ -112,7 +127,7 @@ def training_patches(learner, patch_nodes: int, halo: int | None = None,
         def grow(parts):
             return driven_patches(mesh, elements, parts, rings)
     else:
-        hops = halo_depth(learner) if halo is None else halo
+        hops = (halo_depth(learner) if halo is None else halo) + buffer
 
         def grow(parts):
             return graph_patches(mesh, parts, hops)
@@ -192,21 +207,29 @@ def energy_view(model: ImplicitEnergy, patch: Patch, rings: int) -> ImplicitEner
 
 
 class PatchTraining(TrajectoryModel):
-    """``learner`` (MeshGraphNet, or Implicit-Energy with ``shooting = 0``) trained on patches
-    of about ``patch_nodes`` nodes plus a halo (module doc), through the ``TrajectoryModel``
-    interface, so ``fit`` trains it as any model. ``halo``: hops (MeshGraphNet, default
-    ``halo_depth``) or element rings of the driven halo (Implicit-Energy, default 1).
-    ``loss``: Implicit-Energy's patch loss, ``solve`` (its one-step loss with the halo driven)
-    or ``residual`` (``ENERGY_LOSSES``). ``budget``: what ``patch_nodes`` counts, the inner
-    nodes or the whole patch (``PATCH_BUDGETS``, ``training_patches``).
+    """``learner`` (MeshGraphNet, Implicit-Energy with ``shooting = 0``, or MeshODENet with a
+    fixed-step explicit integrator and the ``mse`` loss) trained on patches of about
+    ``patch_nodes`` nodes plus a halo (module doc), through the ``TrajectoryModel`` interface,
+    so ``fit`` trains it as any model. ``halo``: hops (MeshGraphNet; MeshODENet's driven
+    halo; default ``halo_depth``) or element rings of the driven halo (Implicit-Energy,
+    default 1). ``buffer``: MeshODENet's rings solved beyond the part but not in the loss
+    (``meshodenet.subdomain.driven``). ``loss``: Implicit-Energy's patch loss, ``solve`` (its
+    one-step loss with the halo driven) or ``residual`` (``ENERGY_LOSSES``). ``budget``: what
+    ``patch_nodes`` counts, the inner nodes or the whole patch (``PATCH_BUDGETS``,
+    ``training_patches``).
 
     Its ``name``, ``config``, ``mesh``, parameters and ``state_dict`` are the learner's; its
     rollouts are the learner's on the whole mesh. ``patches`` are built once.
     """
 
     def __init__(self, learner: TrajectoryModel, patch_nodes: int, halo: int | None = None,
-                 loss: str = "solve", budget: str = "inner"):
+                 loss: str = "solve", budget: str = "inner", buffer: int = 0):
         _check_learner(learner)
+        if isinstance(buffer, bool) or not isinstance(buffer, (int, np.integer)) or buffer < 0:
+            raise ValueError(f"buffer must be an integer >= 0 (rings), got {buffer!r}")
+        if buffer and not isinstance(learner, MeshODENet):
+            raise ValueError(f"buffer = {buffer} is MeshODENet's (rings solved beyond the "
+                             f"part); {learner.name}'s halo is set by halo")
         if loss not in ENERGY_LOSSES:
             raise ValueError(f"loss must be one of {', '.join(ENERGY_LOSSES)}, got {loss!r}")
         if loss != "solve" and not isinstance(learner, ImplicitEnergy):
@@ -218,7 +241,8 @@ class PatchTraining(TrajectoryModel):
         self.patch_nodes, self.loss = int(patch_nodes), loss
         energy = isinstance(learner, ImplicitEnergy)
         self.halo = (1 if energy else halo_depth(learner)) if halo is None else halo
-        self.patches = training_patches(learner, patch_nodes, self.halo, budget)
+        self.buffer = int(buffer)
+        self.patches = training_patches(learner, patch_nodes, self.halo, budget, self.buffer)
         self._cache: dict = {}
 
     @property
@@ -255,19 +279,54 @@ class PatchTraining(TrajectoryModel):
         weigh each rank's patches by their own sizes)."""
         samples = samples.to(data.pos.device)
         own, part = samples // self.k, samples % self.k
+        ode = isinstance(self.learner, MeshODENet)
+        if ode:  # one draw of the batch's windows, as the learner's own loss draws them
+            traj, start, S = self.learner.windows(data, own, generator)
         total = 0.0
         for p in torch.unique(part).tolist():
-            total = total + self.patch_loss(self.patches[p], data, own[part == p],
-                                            generator)[0]
-        free = int((self.learner.mesh.node_type == 0).sum())
-        return total / (len(samples) * max(free, 1) / self.k)
+            at = part == p
+            if ode:
+                loss = self._ode_loss(self.patches[p], data, traj[at], start[at], S)
+            else:
+                loss = self.patch_loss(self.patches[p], data, own[at], generator)
+            total = total + loss[0]
+        return total / (len(samples) * max(self.node_terms(), 1) / self.k)
+
+    def node_terms(self) -> int:
+        """The nodes a sample's loss is the mean over on the whole mesh: the free nodes
+        (MeshGraphNet, Implicit-Energy), every node (MeshODENet's mean holds the clamped
+        nodes, whose error is 0)."""
+        if isinstance(self.learner, MeshODENet):
+            return self.learner.mesh.n_nodes
+        return int((self.learner.mesh.node_type == 0).sum())
 
     def patch_loss(self, patch: Patch, data, samples, generator=None):
         """``(sum, count)``: the learner's loss of its samples ``samples`` on ``patch``, summed
         over the patch's inner nodes, and the number of terms it is the mean of."""
         if isinstance(self.learner, ImplicitEnergy):
             return self._energy_loss(patch, data, samples)
+        if isinstance(self.learner, MeshODENet):
+            return self._ode_loss(patch, data, *self.learner.windows(data, samples, generator))
         return self._mgn_loss(patch, data, samples, generator)
+
+    def _ode_loss(self, patch, data, traj, start, S):
+        """MeshODENet's ``mse`` loss of the windows ``(traj, start)`` of ``S`` intervals on the
+        driven ``patch``, summed over its inner nodes (``MeshODENet.frame_weights``), plus
+        ``release_weight`` times the release term's sum (one step from frame 0)."""
+        m = self.learner
+        topo = self._cached(("topology", patch.part), lambda: patch_topology(m, patch))
+        driven, inner = patch.hops > self.buffer, torch.as_tensor(patch.inner)
+
+        def sq(tr, st, steps):
+            pred, true = driven_windows(m, topo, driven, data, tr, st, steps, patch.nodes)
+            return ((pred[:, 1:] - true[:, 1:]) ** 2).sum(-1)[..., inner.to(pred.device)]
+
+        w = m.frame_weights(data, S).to(data.pos.device, data.pos.dtype)
+        total = (sq(traj, start, S).sum((0, 2)) * w).sum()
+        lam = m.config.release_weight
+        if lam:
+            total = total + lam * sq(traj, torch.zeros_like(start), 1).sum() / m.release_scale(data)
+        return total, len(traj) * int(inner.sum())
 
     def _mgn_loss(self, patch, data, samples, generator):
         m = self.learner
