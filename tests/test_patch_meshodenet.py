@@ -25,7 +25,7 @@ from meshodenet.subdomain import PatchTraining
 from meshodenet.subdomain.driven import Hermite
 from meshodenet.training.train import TrainConfig, fit, load_checkpoint
 from tests.test_partition import case_mesh, lively, synthetic
-from tests.test_patch_training import every_patch, loss_and_grad, rel
+from tests.test_patch_training import fit_resumes_exactly, loss_and_grad, rel
 
 torch.set_num_threads(1)
 
@@ -51,7 +51,7 @@ def model(plate, scale=0.1, **fields) -> MeshODENet:
 def both(m, pt, data, samples, seed=1):
     """(whole mesh's loss and gradient, every patch's) from the same generator draws."""
     whole = loss_and_grad(m, m.training_loss(data, samples, torch.Generator().manual_seed(seed)))
-    every = every_patch(pt, samples)
+    every = pt.every_patch(samples)
     return whole, loss_and_grad(m, pt.training_loss(data, every,
                                                     torch.Generator().manual_seed(seed)))
 
@@ -106,7 +106,7 @@ def test_on_its_own_rollout_the_driven_halo_converges_at_the_fourth_order(plate)
         samples = torch.arange(m.n_training_samples(data))
         with torch.no_grad():
             assert float(m.training_loss(data, samples)) < 1e-28  # its own rollout
-            loss = float(pt.training_loss(data, every_patch(pt, samples)))
+            loss = float(pt.training_loss(data, pt.every_patch(samples)))
         h.append(0.01 / n)
         err.append(loss ** 0.5)  # a relative position error
     order = np.polyfit(np.log(h), np.log(err), 1)[0]
@@ -148,25 +148,5 @@ def test_fit_on_patches_writes_meshodenets_checkpoints_and_resumes_exactly(plate
     mesh, data = plate[0], plate[1].to(dtype=torch.float32)
     cfg = TrainConfig(epochs=2, lr=1e-3, lr_milestones=(), batch_size=4, max_batches=2,
                       val_fraction=0.0, patch_nodes=46)
-
-    def run(out, epochs, resume=False):
-        torch.manual_seed(0)
-        learner = MeshODENet(mesh, MeshODENetConfig(hidden=8, mlp_hidden_layers=1,
-                                                    shooting=3), data)
-        fit(PatchTraining(learner, cfg.patch_nodes), data, data.subset(torch.arange(1)),
-            dataclasses.replace(cfg, epochs=epochs), out, resume=resume, progress=False)
-        return learner
-
-    straight = run(tmp_path / "a", 2)
-    run(tmp_path / "b", 1)
-    resumed = run(tmp_path / "b", 2, resume=True)
-    for key, value in straight.state_dict().items():
-        assert torch.equal(value, resumed.state_dict()[key]), key
-    ck = load_checkpoint(tmp_path / "a" / "last.pt")
-    assert ck["model_info"]["name"] == "meshodenet"
-    assert set(ck["model"]) == set(straight.state_dict())
-    from meshodenet.registry import load_model
-
-    loaded, _ = load_model(tmp_path / "a" / "last.pt")
-    start = (data.pos[:1, 0], data.vel[:1, 0], data.youngs[:1], data.t[:3])
-    assert torch.equal(loaded.rollout(*start)[0], straight.rollout(*start)[0])
+    fit_resumes_exactly(lambda: MeshODENet(mesh, MeshODENetConfig(
+        hidden=8, mlp_hidden_layers=1, shooting=3), data), data, cfg, tmp_path, "meshodenet")

@@ -52,11 +52,6 @@ def energy(plate):
     return lively(ImplicitEnergy(mesh, energy_presets("quick", mesh.kind)[1], data), scale=0.1)
 
 
-def every_patch(pt: PatchTraining, frames: torch.Tensor) -> torch.Tensor:
-    """The samples of every patch of the learner's samples ``frames``."""
-    return (frames[:, None] * pt.k + torch.arange(pt.k)).reshape(-1)
-
-
 def loss_and_grad(model, loss):
     model.zero_grad()
     loss.backward()
@@ -76,7 +71,7 @@ def test_mgn_on_patches_is_the_whole_mesh_loss_and_gradient(plate, mgn, k):
     whole, g_whole = loss_and_grad(mgn, mgn.training_loss(data, FRAMES))
     pt = PatchTraining(mgn, BUDGETS[k])
     assert pt.k == k and pt.halo == halo_depth(mgn) == 3
-    patched, g = loss_and_grad(mgn, pt.training_loss(data, every_patch(pt, FRAMES)))
+    patched, g = loss_and_grad(mgn, pt.training_loss(data, pt.every_patch(FRAMES)))
     assert rel(patched, whole) < RTOL and rel(g, g_whole) < RTOL
 
 
@@ -84,7 +79,7 @@ def test_mgn_halo_one_hop_short_is_not_exact(plate, mgn):
     data = plate[1]
     whole = float(mgn.training_loss(data, FRAMES).detach())
     pt = PatchTraining(mgn, BUDGETS[4], halo=halo_depth(mgn) - 1)
-    assert rel(float(pt.training_loss(data, every_patch(pt, FRAMES)).detach()), whole) > 1e-8
+    assert rel(float(pt.training_loss(data, pt.every_patch(FRAMES)).detach()), whole) > 1e-8
 
 
 def test_patch_frames_are_the_whole_frames_at_the_patch_nodes(plate, mgn, energy):
@@ -105,7 +100,7 @@ def test_energy_driven_halo_is_exact_when_it_reaches_the_whole_mesh(plate, energ
     data = plate[1]
     whole, g_whole = loss_and_grad(energy, energy.training_loss(data, FRAMES))
     pt = PatchTraining(energy, BUDGETS[k], halo=1 if k == 1 else 200)
-    patched, g = loss_and_grad(energy, pt.training_loss(data, every_patch(pt, FRAMES)))
+    patched, g = loss_and_grad(energy, pt.training_loss(data, pt.every_patch(FRAMES)))
     assert rel(patched, whole) < RTOL and rel(g, g_whole) < RTOL
 
 
@@ -115,16 +110,16 @@ def test_energy_driven_halo_is_biased_and_less_so_when_deeper(plate, energy):
     bias = []
     for rings in (1, 2, 4):
         pt = PatchTraining(energy, BUDGETS[4], halo=rings)
-        bias.append(abs(float(pt.training_loss(data, every_patch(pt, FRAMES)).detach()) / whole - 1))
+        bias.append(abs(float(pt.training_loss(data, pt.every_patch(FRAMES)).detach()) / whole - 1))
     assert bias[0] > 1e-8 and bias[2] < bias[1] < bias[0]  # far above round-off (1e-15)
 
 
 def test_energy_residual_loss_sums_exactly_over_patches(plate, energy):
     data = plate[1]
     one = PatchTraining(energy, BUDGETS[1], loss="residual")
-    whole, g_whole = loss_and_grad(energy, one.training_loss(data, every_patch(one, FRAMES)))
+    whole, g_whole = loss_and_grad(energy, one.training_loss(data, one.every_patch(FRAMES)))
     pt = PatchTraining(energy, BUDGETS[4], loss="residual")
-    patched, g = loss_and_grad(energy, pt.training_loss(data, every_patch(pt, FRAMES)))
+    patched, g = loss_and_grad(energy, pt.training_loss(data, pt.every_patch(FRAMES)))
     assert rel(patched, whole) < RTOL and rel(g, g_whole) < RTOL
 
 
@@ -150,14 +145,20 @@ def test_fit_on_patches_writes_the_learners_checkpoints_and_resumes_exactly(plat
     mesh, data = plate[0], plate[1].to(dtype=torch.float32)
     cfg = TrainConfig(epochs=2, lr=1e-3, lr_milestones=(), batch_size=4, max_batches=3,
                       val_fraction=0.0, patch_nodes=BUDGETS[4])
+    fit_resumes_exactly(lambda: MeshGraphNet(mesh, MeshGraphNetConfig(
+        hidden=8, layers=2, noise=0.1, mlp_hidden_layers=1), data), data, cfg, tmp_path, "mgn")
 
+
+def fit_resumes_exactly(make, data, cfg: TrainConfig, tmp_path, name: str) -> None:
+    """``fit`` of ``PatchTraining`` around a learner from ``make()`` (seeded): two epochs
+    straight equal one epoch and a resumed second, bit for bit; ``last.pt`` is the learner's
+    own checkpoint (``name``, its state), and the model ``load_model`` rebuilds from it rolls
+    out as the trained learner."""
     def run(out, epochs, resume=False):
         torch.manual_seed(0)
-        learner = MeshGraphNet(mesh, MeshGraphNetConfig(hidden=8, layers=2, noise=0.1,
-                                                        mlp_hidden_layers=1), data)
-        pt = PatchTraining(learner, cfg.patch_nodes)
-        fit(pt, data, data.subset(torch.arange(1)), dataclasses.replace(cfg, epochs=epochs),
-            out, resume=resume, progress=False)
+        learner = make()
+        fit(PatchTraining(learner, cfg.patch_nodes), data, data.subset(torch.arange(1)),
+            dataclasses.replace(cfg, epochs=epochs), out, resume=resume, progress=False)
         return learner
 
     straight = run(tmp_path / "a", 2)
@@ -166,7 +167,7 @@ def test_fit_on_patches_writes_the_learners_checkpoints_and_resumes_exactly(plat
     for key, value in straight.state_dict().items():
         assert torch.equal(value, resumed.state_dict()[key]), key
     ck = load_checkpoint(tmp_path / "a" / "last.pt")
-    assert ck["model_info"]["name"] == "mgn" and set(ck["model"]) == set(straight.state_dict())
+    assert ck["model_info"]["name"] == name and set(ck["model"]) == set(straight.state_dict())
     from meshodenet.registry import load_model
 
     loaded, _ = load_model(tmp_path / "a" / "last.pt")

@@ -55,8 +55,7 @@ def rows_of(name, model, data, samples, args) -> list:
     for budget in args.budgets:
         for loss, rings in [("solve", r) for r in args.rings] + [("residual", 1)]:
             pt = PatchTraining(model, budget, halo=rings, loss=loss)
-            every = (samples[:, None] * pt.k + torch.arange(pt.k)).reshape(-1)
-            value, gp = _grad(model, pt.training_loss(data, every))
+            value, gp = _grad(model, pt.training_loss(data, pt.every_patch(samples)))
             rows.append(dict(model=name, budget=budget, k=pt.k, loss=loss, rings=rings,
                              loss_rel_diff=value / whole - 1 if loss == "solve" else float("nan"),
                              grad_cosine=float(gp @ g / (gp.norm() * g.norm()))))

@@ -60,8 +60,7 @@ def rows_of(name, model, data, args) -> list:
         for budget in args.budgets:
             for buffer in args.buffers:
                 pt = PatchTraining(model, budget, buffer=buffer)
-                every = (samples[:, None] * pt.k + torch.arange(pt.k)).reshape(-1)
-                value, gp = _grad(model, pt.training_loss(data, every,
+                value, gp = _grad(model, pt.training_loss(data, pt.every_patch(samples),
                                                           torch.Generator().manual_seed(0)))
                 rows.append(dict(model=name, window=S, budget=budget, k=pt.k, buffer=buffer,
                                  loss=whole, loss_rel_diff=value / whole - 1,

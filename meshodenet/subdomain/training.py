@@ -271,6 +271,12 @@ class PatchTraining(TrajectoryModel):
     def n_training_samples(self, data) -> int:
         return self.learner.n_training_samples(data) * self.k
 
+    def every_patch(self, own: torch.Tensor) -> torch.Tensor:
+        """The samples ``(n k,)`` of every patch of the learner's samples ``own (n,)``: a
+        sample is ``own * k + patch`` (``training_loss`` splits it back); a batch of them gives
+        the whole mesh's loss of those samples where the learner is exact on patches."""
+        return (own[:, None] * self.k + torch.arange(self.k, device=own.device)).reshape(-1)
+
     def training_loss(self, data, samples, generator=None):
         """The learner's loss summed over the inner nodes of the samples' patches, over the
         number of samples times the mean number of free inner nodes of a patch (module doc):
