@@ -12,8 +12,6 @@ resume.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import torch
@@ -23,7 +21,7 @@ from meshodenet.gnn.mgn import MeshGraphNet, MeshGraphNetConfig
 from meshodenet.mesh.data import Trajectories
 from meshodenet.subdomain import PatchTraining
 from meshodenet.subdomain.driven import Hermite
-from meshodenet.training.train import TrainConfig, fit, load_checkpoint
+from meshodenet.training.train import TrainConfig
 from tests.test_partition import case_mesh, lively, synthetic
 from tests.test_patch_training import fit_resumes_exactly, loss_and_grad, rel
 
