@@ -15,10 +15,11 @@ compared). Rows to ``--out`` (CSV) and a table to stdout.
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
 import torch
+
+from benchmarks.cost.scalecore import write_rows
 
 FIELDS = ("model", "budget", "k", "loss", "rings", "loss_rel_diff", "grad_cosine")
 
@@ -35,16 +36,22 @@ def models(mesh, data, args) -> dict:
 
     torch.manual_seed(0)
     start = ImplicitEnergy(mesh, energy_presets("quick", mesh.kind)[1], data)
-    noisy = ImplicitEnergy(mesh, start.config)
-    noisy.load_state_dict(start.state_dict())
-    g = torch.Generator().manual_seed(0)
-    with torch.no_grad():
-        for p in noisy.parameters():
-            p.add_(args.noise * torch.randn(p.shape, generator=g, dtype=p.dtype))
+    noisy = perturbed(start, ImplicitEnergy(mesh, start.config), args.noise)
     out = {"start": start, f"start + noise {args.noise:g}": noisy}
     if args.checkpoint:
         out["trained"] = load_model(args.checkpoint)[0]
     return out
+
+
+def perturbed(start, copy, noise: float):
+    """``copy`` (a model of ``start``'s kind and configuration) with ``start``'s state and
+    every weight moved by seeded normal noise of scale ``noise``."""
+    copy.load_state_dict(start.state_dict())
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for p in copy.parameters():
+            p.add_(noise * torch.randn(p.shape, generator=g, dtype=p.dtype))
+    return copy
 
 
 def rows_of(name, model, data, samples, args) -> list:
@@ -86,11 +93,7 @@ def main(argv=None) -> list:
     rows = []
     for name, model in models(mesh, data, args).items():
         rows += rows_of(name, model, data, samples, args)
-    with open(args.out, "w", newline="") as f:
-        w = csv.DictWriter(f, FIELDS, lineterminator="\n")
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: f"{v:.6g}" if isinstance(v, float) else v for k, v in r.items()})
+    write_rows(args.out, FIELDS, rows, 6)
     print("| model | budget | k | loss | rings | loss rel. diff | grad cosine |\n" + "|---" * 7
           + "|")
     for r in rows:

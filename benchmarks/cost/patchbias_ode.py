@@ -15,13 +15,13 @@ gradient's cosine with ``g``. Rows to ``--out`` (CSV) and a table to stdout.
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 from pathlib import Path
 
 import torch
 
-from benchmarks.cost.patchbias import _grad
+from benchmarks.cost.patchbias import _grad, perturbed
+from benchmarks.cost.scalecore import write_rows
 
 FIELDS = ("model", "window", "budget", "k", "buffer", "loss", "loss_rel_diff", "grad_cosine")
 
@@ -32,12 +32,7 @@ def models(mesh, data, args) -> dict:
 
     torch.manual_seed(0)
     start = MeshODENet(mesh, meshodenet_presets("quick", mesh.kind)[1], data).double()
-    noisy = MeshODENet(mesh, start.config, data).double()
-    noisy.load_state_dict(start.state_dict())
-    g = torch.Generator().manual_seed(0)
-    with torch.no_grad():
-        for p in noisy.parameters():
-            p.add_(args.noise * torch.randn(p.shape, generator=g, dtype=p.dtype))
+    noisy = perturbed(start, MeshODENet(mesh, start.config, data).double(), args.noise)
     out = {"untrained": start, f"untrained + noise {args.noise:g}": noisy}
     if args.checkpoint:
         out["trained"] = load_model(args.checkpoint)[0].double()
@@ -101,11 +96,7 @@ def main(argv=None) -> list:
     rows = []
     for name, model in models(mesh, data, args).items():
         rows += rows_of(name, model, data, args)
-    with open(args.out, "w", newline="") as f:
-        w = csv.DictWriter(f, FIELDS, lineterminator="\n")
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: f"{v:.6g}" if isinstance(v, float) else v for k, v in r.items()})
+    write_rows(args.out, FIELDS, rows, 6)
     print(table(rows))
     return rows
 

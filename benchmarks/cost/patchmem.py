@@ -21,7 +21,6 @@ does not fit its limit is recorded as such. Rows to ``--out`` (CSV) and a table 
 from __future__ import annotations
 
 import argparse
-import csv
 import multiprocessing as mp
 import resource
 import tempfile
@@ -187,11 +186,9 @@ def main(argv=None) -> list:
                 for budget in [args.budget] + ([0] if r in args.whole else []):
                     rows.append(measure(learner, r, budget, path, n, args))
                     print(table(rows[-1:]).splitlines()[-1], flush=True)
-    with open(args.out, "w", newline="") as f:
-        w = csv.DictWriter(f, FIELDS, extrasaction="ignore", lineterminator="\n")
-        w.writeheader()
-        for row in rows:
-            w.writerow({k: f"{v:.4g}" if isinstance(v, float) else v for k, v in row.items()})
+    from benchmarks.cost.scalecore import write_rows
+
+    write_rows(args.out, FIELDS, rows, 4, extra="ignore")
     print(table(rows))
     return rows
 

@@ -30,6 +30,24 @@ PROVENANCE = ["git_sha", "timestamp", "machine", "cpu_model", "cpu_count", "thre
 
 
 # --- small helpers ---------------------------------------------------------------------------
+def write_rows(path, fields, rows: list, digits: int, extra: str = "raise") -> None:
+    """``rows`` (dicts) as a CSV of the columns ``fields``, floats to ``digits`` significant
+    digits, written atomically (``groundtruth.store.atomic_write``); ``extra``: what a key
+    outside ``fields`` does, ``raise`` or ``ignore`` (``csv.DictWriter``'s ``extrasaction``)."""
+    import csv
+    import io
+    from pathlib import Path
+
+    from groundtruth import store
+
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fields, extrasaction=extra, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: f"{v:.{digits}g}" if isinstance(v, float) else v for k, v in r.items()})
+    store.atomic_write(Path(path), lambda f: f.write(buf.getvalue()), mode="w")
+
+
 def refined_id(case: str, r: int) -> str:
     return case if r == 1 else f"{case}@r{r}"
 
