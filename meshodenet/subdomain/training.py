@@ -279,10 +279,11 @@ class PatchTraining(TrajectoryModel):
 
     def training_loss(self, data, samples, generator=None):
         """The learner's loss summed over the inner nodes of the samples' patches, over the
-        number of samples times the mean number of free inner nodes of a patch (module doc):
-        a fixed divisor, so the loss of a batch is the mean of its samples' and ranks that
-        split a batch evenly average to the batch's loss (a divisor counted per batch would
-        weigh each rank's patches by their own sizes)."""
+        number of samples times the mean number per patch of the nodes the learner's own loss
+        averages over (``node_terms``; module doc): a fixed divisor, so the loss of a batch
+        is the mean of its samples' and ranks that split a batch evenly average to the
+        batch's loss (a divisor counted per batch would weigh each rank's patches by their
+        own sizes)."""
         samples = samples.to(data.pos.device)
         own, part = samples // self.k, samples % self.k
         ode = isinstance(self.learner, MeshODENet)
@@ -291,11 +292,9 @@ class PatchTraining(TrajectoryModel):
         total = 0.0
         for p in torch.unique(part).tolist():
             at = part == p
-            if ode:
-                loss = self._ode_loss(self.patches[p], data, traj[at], start[at], S)
-            else:
-                loss = self.patch_loss(self.patches[p], data, own[at], generator)
-            total = total + loss[0]
+            total = total + (self._ode_loss(self.patches[p], data, traj[at], start[at], S)
+                             if ode else
+                             self.patch_loss(self.patches[p], data, own[at], generator))
         return total / (len(samples) * max(self.node_terms(), 1) / self.k)
 
     def node_terms(self) -> int:
@@ -307,8 +306,8 @@ class PatchTraining(TrajectoryModel):
         return int((self.learner.mesh.node_type == 0).sum())
 
     def patch_loss(self, patch: Patch, data, samples, generator=None):
-        """``(sum, count)``: the learner's loss of its samples ``samples`` on ``patch``, summed
-        over the patch's inner nodes, and the number of terms it is the mean of."""
+        """The learner's loss of its samples ``samples`` on ``patch``, summed over the patch's
+        inner nodes (``training_loss`` divides the batch's sum by a fixed count)."""
         if isinstance(self.learner, ImplicitEnergy):
             return self._energy_loss(patch, data, samples)
         if isinstance(self.learner, MeshODENet):
@@ -332,7 +331,7 @@ class PatchTraining(TrajectoryModel):
         lam = m.config.release_weight
         if lam:
             total = total + lam * sq(traj, torch.zeros_like(start), 1).sum() / m.release_scale(data)
-        return total, len(traj) * int(inner.sum())
+        return total
 
     def _mgn_loss(self, patch, data, samples, generator):
         m = self.learner
@@ -343,20 +342,18 @@ class PatchTraining(TrajectoryModel):
                             dt=float(m.dt))
         err = m.node_errors(x_prev, x, x_next, ctx, generator)
         inner = torch.as_tensor(patch.inner, device=x.device, dtype=x.dtype).repeat(len(x))
-        w = ctx.batch.free * inner[:, None]
-        return (err * w).sum(), int(w.sum())
+        return (err * ctx.batch.free * inner[:, None]).sum()
 
     def _energy_loss(self, patch, data, samples):
         m = self.learner
         view = self._cached(("view", patch.part), lambda: energy_view(m, patch, self.halo))
         inner = torch.as_tensor(patch.inner, device=view.free.device)
-        count = len(samples) * int((inner & view.free).sum())
         if self.loss == "residual":
             r, unknowns = energy_residual(view, data, samples, patch.nodes)
         else:
             r, unknowns = view.one_step_errors(data, samples, patch.nodes)
         w = inner[unknowns // 3].to(r.dtype)
-        return (r**2 * w).sum() / float(m.ystats[3]), count
+        return (r**2 * w).sum() / float(m.ystats[3])
 
     def _cached(self, key, build):
         if key not in self._cache:
