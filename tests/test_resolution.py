@@ -37,7 +37,21 @@ TINY = RodCase(id="rod_tiny_res", n_nodes=7, t_end=0.2, n_train=2, n_test=1)
 
 def test_every_registered_case_is_refinable():
     assert sorted(c for c in CASES if callable(getattr(CASES[c], "refined", None))) == \
-        sorted(REFINABLE)
+        sorted(REFINABLE + ("plate_cantilever_few",))
+
+
+def test_the_subdomain_plate_is_the_paper_plate_with_fewer_training_trajectories():
+    """plate_cantilever_few (the subdomain suite's) differs from plate_cantilever in its
+    training split only: at r = 8 the same mesh and the same test moduli, so that a model
+    trained on the paper's mesh is rolled out on the same test trajectories."""
+    few, paper = get_case("plate_cantilever_few@r8"), get_case("plate_cantilever@r8")
+    a, b = few.to_dict(), paper.to_dict()
+    assert {k for k in a if a[k] != b[k]} == {"id", "n_train", "seed_train"}
+    assert few.n_train == 6 and len(few.rest_positions()) == 9289
+    np.testing.assert_array_equal(few.sample_youngs("test"), paper.sample_youngs("test"))
+    y = np.sort(few.sample_youngs("train"))  # the seed's draws span the modulus range
+    assert y[0] <= 3.0e6 and y[-1] >= 7.0e6
+    assert np.diff(np.r_[2.5e6, y, 7.5e6]).max() <= 1.5e6
 
 
 @pytest.mark.parametrize("case_id", REFINABLE)

@@ -160,6 +160,25 @@ register_suite(Suite(
     "times finer (CASE@rN, only their test split generated): results/scale/transfer/ "
     "(docs/SCALE.md, 'Learned models on other meshes')",
     QUICK_RUNS, seeds=3, compare_rtol=0.05, resolutions=(1, 2, 4)))
+#: The sub-domain suite's overrides of Implicit-Energy's ``quick`` plate preset
+#: (docs/SUBDOMAIN.md, "The subdomain suite"): patches of 2,000 inner nodes (5 METIS parts of
+#: the 9,289-node mesh, each with its one-ring halo), batches of 8 (frame, patch) pairs.
+#: Validation rolls the whole mesh out (about 100 s a trajectory at r = 8); every other epoch.
+SUBDOMAIN_OVERRIDES = ("train.patch_nodes=2000", "train.batch_size=8", "train.val_every=2")
+register_suite(Suite(
+    "subdomain", "Implicit-Energy trained on patches of the r = 8 plate (plate_cantilever_few@r8: "
+    "9,289 nodes, 6 training trajectories), 2,000 nodes a patch, 3 seeds, rolled out on the "
+    "whole mesh on the paper's test moduli (docs/SUBDOMAIN.md, 'The subdomain suite'; its "
+    "baseline, the same learner trained on the paper's mesh, is the subdomain_transfer suite)",
+    (RunSpec("plate_cantilever_few@r8", "implicit_energy", "quick",
+             overrides=SUBDOMAIN_OVERRIDES, tag="patches"),), seeds=3, compare_rtol=0.05))
+register_suite(Suite(
+    "subdomain_transfer", "the subdomain suite's baseline: Implicit-Energy trained on the "
+    "paper's plate mesh (the quick suite's runs, reused when trained), 3 seeds, rolled out on "
+    "the test moduli of the same plate on a mesh 8 times finer (plate_cantilever@r8, 9,289 "
+    "nodes): results/subdomain_transfer/transfer/",
+    (RunSpec("plate_cantilever", "implicit_energy", "quick"),), seeds=3, compare_rtol=0.05,
+    resolutions=(1, 8)))
 register_suite(Suite(
     "paper", "the paper's two cases, MeshODENet and MGN, the paper's settings (GPU "
     "recommended: a MeshODENet rod run took 6 h of one core, 45-57 s per epoch, on a shared "
