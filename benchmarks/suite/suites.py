@@ -173,6 +173,12 @@ register_suite(Suite(
     (RunSpec("plate_cantilever_few@r8", "implicit_energy", "quick",
              overrides=SUBDOMAIN_OVERRIDES, tag="patches"),), seeds=3, compare_rtol=0.05))
 register_suite(Suite(
+    "subdomain_whole", "the subdomain suite's run trained on the whole r = 8 mesh instead of "
+    "on patches (the same settings, batches of 8 whole frames), one seed: what patches cost "
+    "and save against whole-graph training at r = 8 (docs/SUBDOMAIN.md)",
+    (RunSpec("plate_cantilever_few@r8", "implicit_energy", "quick",
+             overrides=SUBDOMAIN_OVERRIDES[1:], tag="whole"),), compare_rtol=0.05))
+register_suite(Suite(
     "subdomain_transfer", "the subdomain suite's baseline: Implicit-Energy trained on the "
     "paper's plate mesh (the quick suite's runs, reused when trained), 3 seeds, rolled out on "
     "the test moduli of the same plate on a mesh 8 times finer (plate_cantilever@r8, 9,289 "
