@@ -23,6 +23,17 @@ FIT_CHUNK_BYTES = 16 * 2**20
 #: where they split the one pass over all frames (a chunk of one frame changed a dihedral
 #: hinge's columns by 2e-16 relative).
 FIT_CHUNK_ALIGN = 64
+#: Bytes (float64) of the start's whole-split tensors above which they are never built: the
+#: statistics' gathered measures and motions (``_statistics``) and the least-squares system
+#: ``[G | rhs]`` (``_fit_log_stiffness``). Below it (every registered case at r = 1: the
+#: plate's system is 0.1 GB) they are built as one tensor each; above it the statistics are
+#: summed over chunks of frames and the system is reduced chunk by chunk to its triangular
+#: factor (``_reduced_lstsq``), so the start's memory is a chunk's, not the split's (a
+#: 9,289-node plate with 5 training trajectories: 6-7 GB in one pass). The same estimators;
+#: their round-off differs (about 1e-13 relative, ``tests/test_energy_start.py``).
+START_WHOLE_BYTES = 256 * 2**20
+#: Bytes per chunk of the reduced statistics and least squares.
+START_CHUNK_BYTES = 32 * 2**20
 
 
 class _AtNodes:
@@ -63,7 +74,11 @@ class LeastSquaresStart:
         B, T = train.pos.shape[:2]
         f64 = dict(dtype=torch.float64, device=self.ystats.device)
         elems = self._elems()
-        step2 = torch.empty(B, T - 1, int(self.free.sum()), **f64)
+        n_free = int(self.free.sum())
+        whole = 8 * B * T * (n_free + sum(len(e[0]) for e in elems.values()))
+        if whole > START_WHOLE_BYTES:
+            return self._statistics_reduced(train, float(y.mean()), float(ly.mean()), sd)
+        step2 = torch.empty(B, T - 1, n_free, **f64)
         qs = {k: torch.empty(B, T, len(nodes), **f64) for k, (nodes, *_) in elems.items()}
         for b in range(B):
             pos = train.pos[b].to(torch.float64)
@@ -80,6 +95,38 @@ class LeastSquaresStart:
             if self.config.clamp_q:
                 qh = q / getattr(self, f"{k}_sigma")
                 getattr(self, f"{k}_qrange").copy_(torch.stack([qh.min(), qh.max()]))
+
+    @torch.no_grad()
+    def _statistics_reduced(self, train: Trajectories, y_mean: float, ly_mean: float,
+                            sd: float) -> None:
+        """``_statistics`` summed over chunks of frames of one trajectory (``START_CHUNK_BYTES``
+        of gathered element positions each): the same means, extremes and buffers, never a
+        whole-split tensor (``START_WHOLE_BYTES``)."""
+        B, T = train.pos.shape[:2]
+        elems = self._elems()
+        per = max(len(nodes) * nodes.shape[1] for nodes, *_ in elems.values()) * 3 * 8
+        chunk = max(1, START_CHUNK_BYTES // max(per, 1))
+        s2, n2 = 0.0, 0
+        acc = {k: [0.0, 0, math.inf, -math.inf] for k in elems}  # sum q^2, count, min, max
+        for b in range(B):
+            for j0 in range(0, T, chunk):
+                j1 = min(j0 + chunk, T)
+                pos = train.pos[b, j0:min(j1 + 1, T)].to(torch.float64)
+                d = ((pos[1:] - pos[:-1])[:, self.free] ** 2).sum(-1)
+                s2, n2 = s2 + float(d.sum()), n2 + d.numel()
+                for k, (nodes, _, rest, l0) in elems.items():
+                    q = measure(k, pos[:j1 - j0][:, nodes], rest, l0)
+                    a = acc[k]
+                    a[0] += float((q**2).sum())
+                    a[1] += q.numel()
+                    a[2], a[3] = min(a[2], float(q.min())), max(a[3], float(q.max()))
+        self.ystats.copy_(torch.tensor([y_mean, ly_mean, sd, s2 / max(n2, 1)]))
+        for k, (sq, n, lo, hi) in acc.items():
+            rms = math.sqrt(sq / max(n, 1))
+            sigma = getattr(self, f"{k}_sigma").fill_(rms if rms > 0 else 1.0)
+            if self.config.clamp_q:  # q / sigma is monotonic in q: its extremes are these
+                getattr(self, f"{k}_qrange").copy_(torch.tensor([lo, hi], dtype=sigma.dtype)
+                                                   / sigma)
 
     def _frames(self, data: Trajectories, samples: torch.Tensor, nodes=None):
         """``(traj, x_k, v_k, x_{k+1}, h)`` of samples, float64: ``v_k`` the backward
@@ -116,13 +163,46 @@ class LeastSquaresStart:
         ``kappa_e = k_e / mean_e k_e``."""
         T = train.n_frames
         samples = torch.arange(0, len(train) * (T - 1), every)
-        traj, xk, vk, x1, h = self._frames(train, samples)
+        n_cols = len(self.kinds) if self.config.stiffness_prior == "uniform" else \
+            sum(len(self._basis(k)) for k in self.kinds)
+        per = 3 * int(self.free.sum()) * (n_cols + 1) * 8  # bytes of a sample's rows
+        if per * len(samples) > START_WHOLE_BYTES:
+            s, owner = self._reduced_lstsq(train, samples, max(1, START_CHUNK_BYTES // per))
+        else:
+            G, rhs, owner, _ = self._balance_system(train, samples)
+            s = torch.linalg.lstsq(G, rhs.reshape(-1, 1)).solution[:, 0]
+        self._set_stiffness(s, owner)
+
+    def _balance_system(self, train: Trajectories, samples: torch.Tensor,
+                        h: float | None = None) -> tuple:
+        """The least-squares start's system over ``samples``: ``G (rows, columns)``, ``rhs``
+        (the free coordinates' momentum balance without the elastic forces), the columns'
+        owners (``_balance_columns``) and the step ``h``: the first sample's unless given
+        (the frames' spacing differs in its last bits, and ``x1 - xk - h vk`` is a small
+        difference of large ones: another sample's ``h`` moved ``rhs`` by 6e-6)."""
+        traj, xk, vk, x1, h_first = self._frames(train, samples)
+        h = h_first if h is None else h
         lhs, owner = self._balance_columns(train.youngs[traj], x1)
         m, c = self.mass[:, None], self.damping[:, None]
         rhs = -(m / h**2 * (x1 - xk - h * vk) + c / h * (x1 - xk) - self.force)[:, self.free]
-        G = torch.stack(lhs, 1)
-        s = torch.linalg.lstsq(G, rhs.reshape(-1, 1)).solution[:, 0]
-        self._set_stiffness(s, owner)
+        return torch.stack(lhs, 1), rhs, owner, h
+
+    def _reduced_lstsq(self, train: Trajectories, samples: torch.Tensor, step: int) -> tuple:
+        """The least-squares solution over ``samples`` taken ``step`` at a time: each chunk's
+        rows ``[G | rhs]`` are stacked under the triangular factor of those before and
+        factorised again (QR), so the last factor ``[R | z]`` has the normal equations of all
+        rows (``R^T R = G^T G``, ``R^T z = G^T rhs``) without squaring their condition; the
+        solution is ``lstsq`` of the small ``R s = z``, with the rank cut-off ``lstsq`` takes
+        for the whole ``G`` (``eps max(rows, columns)``: the columns are nearly dependent, and
+        the small system's own cut-off kept directions the whole one drops)."""
+        R, owner, rows, h = None, [], 0, None
+        for i in range(0, len(samples), step):  # every chunk with the first sample's h
+            G, rhs, owner, h = self._balance_system(train, samples[i:i + step], h)
+            rows += len(G)
+            A = torch.cat([G, rhs.reshape(-1, 1)], 1)
+            R = torch.linalg.qr(A if R is None else torch.cat([R, A], 0), mode="r").R
+        rcond = torch.finfo(R.dtype).eps * max(rows, R.shape[1] - 1)
+        return torch.linalg.lstsq(R[:, :-1], R[:, -1:], rcond=rcond).solution[:, 0], owner
 
     def _set_stiffness(self, s: torch.Tensor, owner: list) -> None:
         """``a_t`` (and ``kappa_e``) from the least-squares solution ``s`` over the columns
