@@ -50,10 +50,16 @@ def test_comparison_reads_the_three_suites(tmp_path):
 
 
 def test_comparison_names_a_missing_table(tmp_path, capsys):
-    _tables(tmp_path, drop="subdomain_whole")
+    _tables(tmp_path, drop="subdomain")
     assert subdomain.main(["--results", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert "subdomain_whole/rmse_at_step.csv: no such file" in err and "Traceback" not in err
+    assert "subdomain/rmse_at_step.csv: no such file" in err and "Traceback" not in err
+
+
+def test_comparison_without_the_whole_mesh_run(tmp_path):
+    _tables(tmp_path, drop="subdomain_whole")
+    table = pd.read_csv(subdomain.write(tmp_path)["csv"])
+    assert set(table["training"]) == {"patches", "paper mesh, transferred"}
 
 
 def test_suites_compare_patches_whole_mesh_and_transfer():
