@@ -9,8 +9,8 @@ RESULTS/S/rmse_at_step.csv (or transfer/rmse_at_step.csv) against DIR/S/'s (exit
 a regression) with the per-row tolerances of DIR/S/tolerance.csv (``meshbench tolerance``);
 only the rows this run produced are compared (e.g. seed 0 of a three-seed baseline); with
 --jobs > 1 the runs start longest first by DIR/S/runs.csv's training times.
-Suites: smoke, quick, paper, hanging, integrators, curves, scale, and those plugins register (see
---list)."""
+Suites: smoke, quick, paper, hanging, integrators, curves, scale, subdomain,
+  subdomain_whole, subdomain_transfer, and those plugins register (see --list)."""
 
 from __future__ import annotations
 
