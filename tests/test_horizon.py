@@ -213,6 +213,22 @@ def test_the_runner_adds_the_rows_to_a_finished_run_once(tmp_path, monkeypatch, 
     assert model.calls == 1 and path.read_text() == after  # present: not added again
 
 
+def test_a_suite_without_horizon_adds_no_rows(tmp_path, monkeypatch):
+    """``Suite.horizon = False`` (the subdomain suites, where 5 times the test trajectories of
+    the r = 8 plate cost more than the suite): the run's rows stay its own, nothing is rolled
+    out; the runner passes the suite's setting to every run."""
+    from benchmarks.suite import runner
+    from benchmarks.suite.suites import RunSpec, get_suite
+
+    run_dir, model, _ = _tiny_run(tmp_path, monkeypatch)
+    path = run_dir / runner.METRICS_FILE
+    before = path.read_text()
+    rec = runner._execute(RunSpec(TINY.id, "meshodenet", "smoke"), run_dir,
+                          str(tmp_path / "data"), False, "cpu", horizon=False)
+    assert rec["reused"] and model.calls == 0 and path.read_text() == before
+    assert not get_suite("subdomain").horizon and get_suite("quick").horizon
+
+
 def test_a_reference_that_fails_keeps_the_run(tmp_path, monkeypatch, capsys):
     from benchmarks.suite import runner
     from benchmarks.suite.suites import RunSpec

@@ -181,9 +181,11 @@ def _integrator_ids(config: dict) -> tuple[str, str]:
 
 
 def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
-                plugin_files: tuple, progress: bool, device: str = "auto") -> dict:
+                plugin_files: tuple, progress: bool, device: str = "auto",
+                horizon: bool = True) -> dict:
     """Train (or resume, or reuse) ``spec`` in ``run_dir``, roll it out on the test split and
-    score it. Returns the run's record (also written to ``run_dir/record.json``).
+    score it, and with ``horizon`` (``Suite.horizon``) add its long-horizon rows. Returns the
+    run's record (also written to ``run_dir/record.json``).
 
     Holds ``run_dir/.lock`` (``procs.DirLock``) meanwhile; when another live process holds
     it (a second ``meshbench run`` on the same runs directory), waits for it and then reuses
@@ -199,7 +201,7 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
     lock.acquire(wait=True, on_wait=lambda pid: _log(
         f"{spec.run_id}: process {pid or '?'} is working on this run; waiting for it"))
     try:
-        rec = _execute(spec, run_dir, data_dir, progress, device)
+        rec = _execute(spec, run_dir, data_dir, progress, device, horizon)
     finally:  # left by a process killed mid-write, or by an interrupt that landed between
         procs.remove_partial_writes(run_dir)  # a write's mkstemp and its try
         lock.release()
@@ -207,7 +209,8 @@ def execute_run(spec: RunSpec, run_dir: str, data_dir: str | None, threads: int,
     return {**rec, "host": socket.gethostname()}
 
 
-def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str) -> dict:
+def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str,
+             horizon: bool = True) -> dict:
     import torch
 
     from benchmarks.suite.runs import (
@@ -226,7 +229,8 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
                           ids={"run": spec.run_id, **{k: getattr(spec, k) for k in
                                                       ("case", "model", "preset", "seed")}})
     if decision.action == "reuse":  # a run finished before the horizon rows gains them now
-        _add_horizon(spec, run_dir, data_dir, device)
+        if horizon:
+            _add_horizon(spec, run_dir, data_dir, device)
         return {**decision.stored, "reused": True}
     # every input is checked before the first epoch: a corrupt test split fails now
     true = store.load_split(get_case(spec.case), "test", data_dir)
@@ -286,7 +290,8 @@ def _execute(spec: RunSpec, run_dir: Path, data_dir, progress: bool, device: str
         rec.update(UNTRAINED_RECORD)
     store.save_json(rec_path, rec)
     # after the record: should it fail, the run is finished and its reuse adds the rows
-    _add_horizon(spec, run_dir, data_dir, device, true)
+    if horizon:
+        _add_horizon(spec, run_dir, data_dir, device, true)
     return rec
 
 
@@ -365,7 +370,8 @@ def run_suite(suite: Suite, *, results_dir="results", runs_dir="runs", data_dir=
     tasks = {r.run_id: (execute_run, (r, str(runs_dir / r.run_id),
                                       None if data_dir is None else str(data_dir), threads,
                                       tuple(str(p) for p in plugin_files),
-                                      progress and jobs == 1 and executor == "local", device))
+                                      progress and jobs == 1 and executor == "local", device,
+                                      suite.horizon))
              for r in (by_id[k] for k in order)}
     done = []
 

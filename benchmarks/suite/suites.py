@@ -80,6 +80,11 @@ class Suite:
     #: case on a mesh r times finer, docs/SCALE.md): RESULTS/NAME/transfer/
     #: (``benchmarks.suite.transfer``) instead of the suite's tables; empty: none
     resolutions: tuple = ()
+    #: roll every run out for ``horizon.FACTOR`` times its test trajectories and score where
+    #: it settles (``benchmarks.suite.horizon``: the ``horizon_*`` rows); False leaves them
+    #: out, where they would cost more than the suite (at r = 8, 2,500 whole-mesh steps and
+    #: a static solve per test trajectory and run)
+    horizon: bool = True
 
     def __post_init__(self):
         safe_id(self.name, "Suite.name")  # names RESULTS/NAME/
@@ -171,13 +176,15 @@ register_suite(Suite(
     "whole mesh on the paper's test moduli (docs/SUBDOMAIN.md, 'The subdomain suite'; its "
     "baseline, the same learner trained on the paper's mesh, is the subdomain_transfer suite)",
     (RunSpec("plate_cantilever_few@r8", "implicit_energy", "quick",
-             overrides=SUBDOMAIN_OVERRIDES, tag="patches"),), seeds=3, compare_rtol=0.05))
+             overrides=SUBDOMAIN_OVERRIDES, tag="patches"),), seeds=3, compare_rtol=0.05,
+    horizon=False))
 register_suite(Suite(
     "subdomain_whole", "the subdomain suite's run trained on the whole r = 8 mesh instead of "
     "on patches (the same settings, batches of 8 whole frames), one seed: what patches cost "
     "and save against whole-graph training at r = 8 (docs/SUBDOMAIN.md)",
     (RunSpec("plate_cantilever_few@r8", "implicit_energy", "quick",
-             overrides=SUBDOMAIN_OVERRIDES[1:], tag="whole"),), compare_rtol=0.05))
+             overrides=SUBDOMAIN_OVERRIDES[1:], tag="whole"),), compare_rtol=0.05,
+    horizon=False))
 register_suite(Suite(
     "subdomain_transfer", "the subdomain suite's baseline: Implicit-Energy trained on the "
     "paper's plate mesh (the quick suite's runs, reused when trained), 3 seeds, rolled out on "
