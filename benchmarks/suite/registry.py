@@ -26,7 +26,7 @@ CASES: dict = {
     "plate_cantilever": InPlanePlateCase(),
     # The sub-domain suite's plate (docs/SUBDOMAIN.md, "The subdomain suite"): the paper's
     # strip with 6 training trajectories instead of 30, refined to r = 8 (9,289 nodes) where a
-    # trajectory costs about 6 minutes of one core. Its training seed is the first from
+    # trajectory costs about 2 minutes of one core. Its training seed is the first from
     # 30,000 whose 6 moduli span the range (lowest <= 3.0 MPa, highest >= 7.0 MPa, no gap
     # over 1.5 MPa: 2.84-7.07 MPa; seed 30,000's six left 5.6-7.5 MPa uncovered). Its test
     # split (seed, moduli, length) is plate_cantilever's, so a model trained on the paper's

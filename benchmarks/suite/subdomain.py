@@ -30,7 +30,7 @@ import pandas as pd
 from groundtruth import store
 
 FROM_STEP = 25
-#: (label, suite directory, table path under it, r = 8 rows only)
+#: (label, suite directory, its rmse_at_step table under the directory)
 SOURCES = (("patches", "subdomain", "rmse_at_step.csv"),
            ("whole mesh", "subdomain_whole", "rmse_at_step.csv"),
            ("paper mesh, transferred", "subdomain_transfer", "transfer/rmse_at_step.csv"))
@@ -59,16 +59,14 @@ def comparison_table(results) -> pd.DataFrame:
     for label, sub, name in SOURCES:
         if sub == "subdomain_whole" and not (results / sub / name).exists():
             continue  # optional (module docstring)
-        t = transfer if sub == "subdomain_transfer" else _read(results, sub, name)
-        runs = _read(results, sub, "transfer/runs.csv" if sub == "subdomain_transfer"
-                     else "runs.csv")
-        cost = {} if sub == "subdomain_transfer" else runs.set_index("seed")[
-            ["train_wall_time_s", "peak_rss_mb"]].to_dict("index")
-        part = t[["case", "model", "seed", "step", "rmse_mean"]].assign(training=label)
-        part["train_wall_time_s"] = [cost.get(s, {}).get("train_wall_time_s", np.nan)
-                                     for s in part["seed"]]
-        part["peak_rss_mb"] = [cost.get(s, {}).get("peak_rss_mb", np.nan) for s in part["seed"]]
-        frames.append(part)
+        cost = ["train_wall_time_s", "peak_rss_mb"]
+        if sub == "subdomain_transfer":  # trained on another mesh: its cost is quick's
+            part = transfer.assign(**{c: np.nan for c in cost})
+        else:
+            part = _read(results, sub, name).merge(
+                _read(results, sub, "runs.csv")[["seed"] + cost], on="seed", how="left")
+        frames.append(part[["case", "model", "seed", "step", "rmse_mean"] + cost]
+                      .assign(training=label))
     out = pd.concat(frames, ignore_index=True)
     missing = sorted(set(out["step"]) - set(still.index))
     if missing:

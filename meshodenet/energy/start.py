@@ -30,7 +30,8 @@ FIT_CHUNK_ALIGN = 64
 #: summed over chunks of frames and the system is reduced chunk by chunk to its triangular
 #: factor (``_reduced_lstsq``), so the start's memory is a chunk's, not the split's (a
 #: 9,289-node plate with 5 training trajectories: 6-7 GB in one pass). The same estimators;
-#: their round-off differs (about 1e-13 relative, ``tests/test_energy_start.py``).
+#: their round-off differs (``tests/test_memory.py`` holds them to 1e-12 relative; on
+#: plate_cantilever's data the stiffness fits agree to 3e-14).
 START_WHOLE_BYTES = 256 * 2**20
 #: Bytes per chunk of the reduced statistics and least squares.
 START_CHUNK_BYTES = 32 * 2**20
